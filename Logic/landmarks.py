@@ -1,0 +1,256 @@
+"""Vertebral landmarks: level names, Slicer Markups JSON (.mrk.json) and plain JSON, pairing by label.
+
+3D points are LPS mm (``points_lps_mm``). 2D points are detector pixels ``uv_px`` = (column, row), 0-based,
+pixel centres at integer coordinates.
+
+2D points in .mrk.json
+----------------------
+Slicer shows an X-ray loaded as a volume with origin 0 and identity directions in LPS and spacing = pixel
+spacing, so a pixel (u, v) sits at LPS ``(u * du, v * dv, 0)`` mm. CarmReg writes 2D points that way
+(``coordinateSystem: "LPS"``) *and* stores the exact pixel coordinates in each control point under the
+namespaced key ``"carmreg": {"uv_px": [u, v]}``, plus ``"carmreg": {"pixel_spacing_mm": [du, dv]}`` on the
+markup. On reading, ``uv_px`` wins; without it, ``position[:2] / pixel_spacing`` is used (spacing 1 if unknown),
+so points placed in Slicer on such a volume load correctly.
+
+Plain JSON for 2D: ``{"T12": [column, row], ...}`` (named) or ``[[column, row], ...]`` (unnamed clicks).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_write_json
+from .errors import InputFileError, LandmarkError
+
+LEVEL_NAMES = ([f"C{i}" for i in range(1, 8)] + [f"T{i}" for i in range(1, 14)]
+               + [f"L{i}" for i in range(1, 7)] + ["S1"])
+"""Vertebral levels from head to sacrum (T13 and L6 for transitional anatomy)."""
+MRK_SCHEMA = "https://raw.githubusercontent.com/slicer/slicer/main/Modules/Loadable/Markups/Resources/Schema/markups-schema-v1.0.3.json#"
+
+
+def normalize_level_name(label: str) -> str:
+    """'t12', 'T 12', 'T12 ' -> 'T12'. Raises LandmarkError for anything that is not a vertebral level."""
+    m = re.fullmatch(r"\s*([CTLS])\s*-?\s*(\d{1,2})\s*", str(label), flags=re.IGNORECASE)
+    name = f"{m.group(1).upper()}{int(m.group(2))}" if m else None
+    if name not in LEVEL_NAMES:
+        raise LandmarkError(f"landmark label {label!r} is not a vertebral level: name points C1-C7, T1-T13, "
+                            "L1-L6 or S1 (e.g. 'T12', 'L1')")
+    return name
+
+
+def level_index(name: str) -> int:
+    """Position along the spine, head to sacrum (C1 = 0)."""
+    return LEVEL_NAMES.index(normalize_level_name(name))
+
+
+def next_level(name: str | None, step: int = 1) -> str:
+    """The level after ``name`` going caudally (T11 -> T12 -> L1); 'T12' when nothing is placed yet."""
+    if name is None:
+        return "T12"
+    i = min(max(level_index(name) + step, 0), len(LEVEL_NAMES) - 1)
+    return LEVEL_NAMES[i]
+
+
+@dataclass
+class Landmarks3D:
+    """Named points in the CT: labels[i] at points_lps_mm[i] (LPS mm)."""
+
+    labels: list[str]
+    points_lps_mm: np.ndarray
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        self.points_lps_mm = np.asarray(self.points_lps_mm, dtype=np.float64).reshape(-1, 3)
+        self.labels = [normalize_level_name(lb) for lb in self.labels]
+        _check_points(self.labels, self.points_lps_mm, self.source)
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return dict(zip(self.labels, self.points_lps_mm, strict=True))
+
+    def sorted(self) -> Landmarks3D:
+        order = np.argsort([level_index(lb) for lb in self.labels], kind="stable")
+        return Landmarks3D([self.labels[i] for i in order], self.points_lps_mm[order], self.source)
+
+
+@dataclass
+class Landmarks2D:
+    """Points on the X-ray: uv_px[i] = (column, row); labels[i] may be None (an unnamed click)."""
+
+    labels: list[str | None]
+    uv_px: np.ndarray
+    source: str = ""
+    pixel_spacing_mm: tuple[float, float] | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        self.uv_px = np.asarray(self.uv_px, dtype=np.float64).reshape(-1, 2)
+        self.labels = [None if lb in (None, "") else normalize_level_name(lb) for lb in self.labels]
+        _check_points([lb for lb in self.labels if lb], self.uv_px, self.source)
+
+    @property
+    def named(self) -> bool:
+        return all(lb is not None for lb in self.labels)
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {lb: p for lb, p in zip(self.labels, self.uv_px, strict=True) if lb is not None}
+
+
+def _check_points(labels: list[str], points: np.ndarray, source: str) -> None:
+    where = f"{source}: " if source else ""
+    if not np.all(np.isfinite(points)):
+        raise LandmarkError(f"{where}a landmark position is not a finite number (NaN or infinity); "
+                            "place or remove that point")
+    dup = sorted({lb for lb in labels if labels.count(lb) > 1})
+    if dup:
+        raise LandmarkError(f"{where}level {', '.join(dup)} is labelled more than once; each vertebra "
+                            "needs exactly one centroid")
+
+
+@dataclass
+class Pairs:
+    """CT and X-ray landmarks matched by label, ordered head to sacrum."""
+
+    labels: list[str]
+    points_lps_mm: np.ndarray
+    uv_px: np.ndarray
+    warnings: list[str]
+
+
+def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs:
+    """Pair CT and X-ray points by level name (never by index); warn about one-sided labels."""
+    ct_map, xr_map = ct.as_dict(), xray.as_dict()
+    common = sorted(set(ct_map) & set(xr_map), key=level_index)
+    notes = []
+    only_xray = sorted(set(xr_map) - set(ct_map), key=level_index)
+    if only_xray:
+        notes.append(f"X-ray levels {', '.join(only_xray)} have no CT centroid and are not used")
+    if len(common) < minimum:
+        raise LandmarkError(f"only {len(common)} level(s) ({', '.join(common) or 'none'}) are labelled on both "
+                            f"the CT and the X-ray; label at least {minimum} of the same vertebrae on both")
+    for note in notes:
+        warnings.warn(note, stacklevel=2)
+    return Pairs(common, np.array([ct_map[lb] for lb in common]), np.array([xr_map[lb] for lb in common]),
+                 notes)
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+def _load_json(path: Path):
+    if not path.is_file():
+        raise InputFileError(f"{path}: landmark file not found")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputFileError(f"{path}: not a valid JSON landmark file ({exc.__class__.__name__}: "
+                             f"{str(exc)[:80]})") from None
+
+
+def _control_points(doc, path: Path) -> tuple[list, dict]:
+    try:
+        markup = doc["markups"][0]
+        points = markup["controlPoints"]
+        if not isinstance(points, list):
+            raise TypeError
+    except (KeyError, IndexError, TypeError):
+        raise InputFileError(f"{path}: not a Slicer markups file (expected markups[0].controlPoints)") from None
+    system = str(markup.get("coordinateSystem", "LPS")).upper()
+    if system not in ("LPS", "RAS"):
+        raise InputFileError(f"{path}: unknown coordinateSystem {system!r} (expected LPS or RAS)")
+    return [p for p in points if p.get("positionStatus", "defined") == "defined"], markup
+
+
+def _position(point: dict, path: Path) -> np.ndarray:
+    try:
+        pos = np.asarray(point["position"], dtype=float)
+        if pos.shape != (3,):
+            raise ValueError
+    except (KeyError, TypeError, ValueError):
+        raise InputFileError(f"{path}: control point {point.get('label', '?')!r} has no 3-number position") \
+            from None
+    return pos
+
+
+def read_landmarks_3d(path: str | Path) -> Landmarks3D:
+    """Read CT centroids from a Slicer .mrk.json (LPS or RAS) or plain JSON ``{"T12": [x, y, z]}`` (LPS)."""
+    path = Path(path)
+    doc = _load_json(path)
+    if isinstance(doc, dict) and "markups" not in doc:
+        try:
+            return Landmarks3D(list(doc), [np.asarray(v, float).reshape(3) for v in doc.values()], str(path))
+        except (TypeError, ValueError):
+            raise InputFileError(f"{path}: plain JSON landmarks must map level names to [x, y, z] LPS mm") \
+                from None
+    points, markup = _control_points(doc, path)
+    flip = np.array([-1.0, -1.0, 1.0]) if markup.get("coordinateSystem", "LPS").upper() == "RAS" else 1.0
+    labels = [p.get("label", "") for p in points]
+    return Landmarks3D(labels, np.array([_position(p, path) * flip for p in points]).reshape(-1, 3), str(path))
+
+
+def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | None = None) -> Landmarks2D:
+    """Read X-ray points: .mrk.json (see module docstring), ``{"T12": [u, v]}`` or ``[[u, v], ...]``."""
+    path = Path(path)
+    doc = _load_json(path)
+    try:
+        if isinstance(doc, list):
+            return Landmarks2D([None] * len(doc), np.asarray(doc, float).reshape(-1, 2), str(path))
+        if isinstance(doc, dict) and "markups" not in doc:
+            return Landmarks2D(list(doc), np.array([np.asarray(v, float).reshape(2) for v in doc.values()]),
+                               str(path))
+    except (TypeError, ValueError):
+        raise InputFileError(f"{path}: plain JSON X-ray landmarks must be {{\"T12\": [column, row]}} or "
+                             "[[column, row], ...]") from None
+    points, markup = _control_points(doc, path)
+    spacing = markup.get("carmreg", {}).get("pixel_spacing_mm") or pixel_spacing_mm or (1.0, 1.0)
+    uv, labels = [], []
+    for p in points:
+        if "uv_px" in p.get("carmreg", {}):
+            uv.append(np.asarray(p["carmreg"]["uv_px"], float).reshape(2))
+        else:
+            pos = _position(p, path)
+            if markup.get("coordinateSystem", "LPS").upper() == "RAS":
+                pos = pos * np.array([-1.0, -1.0, 1.0])
+            uv.append(pos[:2] / np.asarray(spacing, float))
+        labels.append(p.get("label") or None)
+    return Landmarks2D(labels, np.array(uv).reshape(-1, 2), str(path), tuple(spacing))
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+def _markup(points: list[dict], extra: dict | None = None) -> dict:
+    markup = {"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm", "locked": False,
+              "labelFormat": "%N-%d", "controlPoints": points,
+              "display": {"visibility": True, "textScale": 3.0, "glyphScale": 3.0}}
+    if extra:
+        markup["carmreg"] = extra
+    return {"@schema": MRK_SCHEMA, "markups": [markup]}
+
+
+def _control_point(index: int, label: str | None, position, extra: dict | None = None) -> dict:
+    point = {"id": str(index + 1), "label": label or "", "description": "", "associatedNodeID": "",
+             "position": [float(x) for x in position], "orientation": [-1.0, 0, 0, 0, -1.0, 0, 0, 0, 1.0],
+             "selected": True, "locked": False, "visibility": True, "positionStatus": "defined"}
+    if extra:
+        point["carmreg"] = extra
+    return point
+
+
+def write_landmarks_3d(path: str | Path, landmarks: Landmarks3D) -> Path:
+    """Write CT centroids as a Slicer .mrk.json in LPS mm (atomic)."""
+    points = [_control_point(i, lb, p) for i, (lb, p) in
+              enumerate(zip(landmarks.labels, landmarks.points_lps_mm, strict=True))]
+    return atomic_write_json(path, _markup(points))
+
+
+def write_landmarks_2d(path: str | Path, landmarks: Landmarks2D,
+                       pixel_spacing_mm: tuple[float, float] | None = None) -> Path:
+    """Write X-ray points as .mrk.json: LPS (u du, v dv, 0) plus exact ``carmreg.uv_px`` (atomic)."""
+    spacing = np.asarray(pixel_spacing_mm or landmarks.pixel_spacing_mm or (1.0, 1.0), float)
+    points = [_control_point(i, lb, [uv[0] * spacing[0], uv[1] * spacing[1], 0.0],
+                             {"uv_px": [float(uv[0]), float(uv[1])]})
+              for i, (lb, uv) in enumerate(zip(landmarks.labels, landmarks.uv_px, strict=True))]
+    return atomic_write_json(path, _markup(points, {"pixel_spacing_mm": [float(s) for s in spacing]}))
