@@ -9,8 +9,8 @@ Slicer shows an X-ray loaded as a volume with origin 0 and identity directions i
 spacing, so a pixel (u, v) sits at LPS ``(u * du, v * dv, 0)`` mm. CarmReg writes 2D points that way
 (``coordinateSystem: "LPS"``) *and* stores the exact pixel coordinates in each control point under the
 namespaced key ``"carmreg": {"uv_px": [u, v]}``, plus ``"carmreg": {"pixel_spacing_mm": [du, dv]}`` on the
-markup. On reading, ``uv_px`` wins; without it, ``position[:2] / pixel_spacing`` is used (spacing 1 if unknown),
-so points placed in Slicer on such a volume load correctly.
+markup. On reading, ``uv_px`` wins; without it, ``position[:2] / pixel_spacing`` is used (spacing 1 if
+unknown), so points placed in Slicer on such a volume load correctly.
 
 Plain JSON for 2D: ``{"T12": [column, row], ...}`` (named) or ``[[column, row], ...]`` (unnamed clicks).
 """
@@ -49,12 +49,22 @@ def level_index(name: str) -> int:
     return LEVEL_NAMES.index(normalize_level_name(name))
 
 
+TRANSITIONAL_LEVELS = ("T13", "L6")
+"""Rare extra levels: accepted as names, skipped when stepping from a usual level."""
+
+
 def next_level(name: str | None, step: int = 1) -> str:
-    """The level after ``name`` going caudally (T11 -> T12 -> L1); 'T12' when nothing is placed yet."""
+    """The level after ``name`` going caudally (T11 -> T12 -> L1); 'T12' when nothing is placed yet.
+
+    Stepping from a usual level skips the transitional T13 and L6; stepping from them uses the full list.
+    """
     if name is None:
         return "T12"
-    i = min(max(level_index(name) + step, 0), len(LEVEL_NAMES) - 1)
-    return LEVEL_NAMES[i]
+    name = normalize_level_name(name)
+    names = LEVEL_NAMES if name in TRANSITIONAL_LEVELS else [n for n in LEVEL_NAMES
+                                                            if n not in TRANSITIONAL_LEVELS]
+    i = min(max(names.index(name) + step, 0), len(names) - 1)
+    return names[i]
 
 
 @dataclass
@@ -130,8 +140,9 @@ def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs
     if only_xray:
         notes.append(f"X-ray levels {', '.join(only_xray)} have no CT centroid and are not used")
     if len(common) < minimum:
-        raise LandmarkError(f"only {len(common)} level(s) ({', '.join(common) or 'none'}) are labelled on both "
-                            f"the CT and the X-ray; label at least {minimum} of the same vertebrae on both")
+        raise LandmarkError(f"only {len(common)} level(s) ({', '.join(common) or 'none'}) are labelled on "
+                            f"both the CT and the X-ray; label at least {minimum} of the same vertebrae on "
+                            "both")
     for note in notes:
         warnings.warn(note, stacklevel=2)
     return Pairs(common, np.array([ct_map[lb] for lb in common]), np.array([xr_map[lb] for lb in common]),
@@ -157,7 +168,10 @@ def _control_points(doc, path: Path) -> tuple[list, dict]:
         if not isinstance(points, list):
             raise TypeError
     except (KeyError, IndexError, TypeError):
-        raise InputFileError(f"{path}: not a Slicer markups file (expected markups[0].controlPoints)") from None
+        raise InputFileError(f"{path}: not a Slicer markups file (expected markups[0].controlPoints)") \
+            from None
+    if not all(isinstance(p, dict) for p in points):
+        raise InputFileError(f"{path}: not a Slicer markups file (controlPoints must be objects)")
     system = str(markup.get("coordinateSystem", "LPS")).upper()
     if system not in ("LPS", "RAS"):
         raise InputFileError(f"{path}: unknown coordinateSystem {system!r} (expected LPS or RAS)")
@@ -188,7 +202,8 @@ def read_landmarks_3d(path: str | Path) -> Landmarks3D:
     points, markup = _control_points(doc, path)
     flip = np.array([-1.0, -1.0, 1.0]) if markup.get("coordinateSystem", "LPS").upper() == "RAS" else 1.0
     labels = [p.get("label", "") for p in points]
-    return Landmarks3D(labels, np.array([_position(p, path) * flip for p in points]).reshape(-1, 3), str(path))
+    points_lps_mm = np.array([_position(p, path) * flip for p in points]).reshape(-1, 3)
+    return Landmarks3D(labels, points_lps_mm, str(path))
 
 
 def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | None = None) -> Landmarks2D:
@@ -209,7 +224,11 @@ def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | 
     uv, labels = [], []
     for p in points:
         if "uv_px" in p.get("carmreg", {}):
-            uv.append(np.asarray(p["carmreg"]["uv_px"], float).reshape(2))
+            try:
+                uv.append(np.asarray(p["carmreg"]["uv_px"], float).reshape(2))
+            except (TypeError, ValueError):
+                raise InputFileError(f"{path}: control point {p.get('label', '?')!r} has no 2-number "
+                                     "carmreg.uv_px") from None
         else:
             pos = _position(p, path)
             if markup.get("coordinateSystem", "LPS").upper() == "RAS":

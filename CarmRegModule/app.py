@@ -1,0 +1,124 @@
+"""Front doors of the desktop application: ``run_gui`` (interactive) and ``export_screenshots`` (headless).
+
+The lead's CLI calls these for ``carmreg gui [...]`` and ``carmreg screenshot --out DIR``.
+Without a display (no $DISPLAY on Linux) Qt runs on its offscreen platform; the 3D views then render through
+VTK's offscreen (EGL/OSMesa) path or show a message, and everything else works the same.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from Logic.errors import CarmRegError, InputFileError
+
+from .qt_common import ScriptedDialogs, ensure_app, process_events
+
+LOG = logging.getLogger("carmreg.gui")
+DEFAULT_VIEWS = ("window", "window_ct", "window_xray", "ct", "xray", "overlay", "3d")
+WINDOW_STEPS = {"window": None, "window_data": 0, "window_ct": 1, "window_xray": 2, "window_register": 3,
+                "window_check": 4}
+
+
+def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: bool = False) -> int:
+    """Open the CarmReg window, optionally with data; returns the application's exit code.
+
+    ct / xray: paths of a CT (DICOM folder, NIfTI, NRRD, MetaImage) and an X-ray (DICOM, PNG, TIFF);
+    ct_landmarks / xray_landmarks: .mrk.json (or plain JSON) centroids; sample: load the embedded sample case.
+    Errors in these inputs are shown as dialogs; the window stays open.
+    """
+    from .main_window import CarmRegWidget
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    app = ensure_app()
+    window = CarmRegWidget()
+    window.show()
+    process_events()
+    if not any((ct, xray, ct_landmarks, xray_landmarks, sample)):
+        window.offer_recovery()
+    _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample)
+    return int(app.exec())
+
+
+def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool) -> None:
+    steps = []
+    if sample:
+        steps.append(("sample case", window.load_sample_case))
+    if ct:
+        steps.append((f"CT {ct}", lambda: window.load_ct(ct)))
+    if xray:
+        steps.append((f"X-ray {xray}", lambda: window.load_xray(xray)))
+    if ct_landmarks:
+        steps.append((f"CT landmarks {ct_landmarks}", lambda: window.import_ct_landmarks(ct_landmarks, False)))
+    if xray_landmarks:
+        steps.append((f"X-ray landmarks {xray_landmarks}",
+                      lambda: window.import_xray_landmarks(xray_landmarks, False)))
+    for what, step in steps:
+        try:
+            step()
+        except CarmRegError as exc:
+            window.dialogs.error("CarmReg", str(exc))
+        except Exception as exc:  # noqa: BLE001 - show, log, keep the window
+            import traceback
+            details = traceback.format_exc()
+            LOG.error("loading %s failed\n%s", what, details)
+            window.dialogs.error("CarmReg - unexpected error", f"Loading {what} failed: {exc}", details)
+    window.undo_stack.clear()
+
+
+def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, register: bool = True,
+                       size=(1600, 1000)) -> list[Path]:
+    """Headless PNG screenshots of the window and its views; returns the written paths.
+
+    views: any of "window" (the state after loading/registering), "window_data", "window_ct", "window_xray",
+    "window_register", "window_check" (the whole window at that workflow step), "axial", "coronal",
+    "sagittal", "ct" (the four CT views), "xray", "overlay", "3d", "result" (overlay + 3D with the C-arm).
+    sample: load the embedded sample case first; register: run the registration when a view needs it.
+    Files are named ``carmreg_<view>.png``. Raises CarmRegError on bad arguments or a failed load.
+    """
+    from .main_window import SCREENSHOT_VIEWS, CarmRegWidget
+
+    unknown = [v for v in views if v not in SCREENSHOT_VIEWS and v not in WINDOW_STEPS]
+    if unknown:
+        raise InputFileError(f"unknown screenshot view(s) {', '.join(unknown)}; choose from "
+                             f"{', '.join(list(WINDOW_STEPS) + [v for v in SCREENSHOT_VIEWS if v != 'window'])}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ensure_app()
+    dialogs = ScriptedDialogs()
+    window = CarmRegWidget(dialogs=dialogs, autosave=False)
+    window.resize(*size)
+    window.show()
+    process_events(50)
+    try:
+        if sample:
+            window.load_sample_case()
+            window.ct_store.select(None)
+            _focus_first_point(window)
+        wants_result = any(v in ("window", "window_register", "window_check", "overlay", "result") for v in views)
+        if sample and register and wants_result:
+            window.run_registration(wait=True)
+            errors = [m for m in dialogs.messages if "error" in m[0].lower() or "registration" in m[0].lower()]
+            if errors:
+                LOG.warning("registration for screenshots failed: %s", errors[-1][1])
+        paths = []
+        for view in views:
+            path = out / f"carmreg_{view}.png"
+            if view in WINDOW_STEPS:
+                step = WINDOW_STEPS[view]
+                if step is not None:
+                    window.set_step(step)
+                process_events(100)
+                paths.append(window.save_screenshot(path, "window"))
+            else:
+                process_events(50)
+                paths.append(window.save_screenshot(path, view))
+        return paths
+    finally:
+        window.discard_and_close()
+
+
+def _focus_first_point(window) -> None:
+    points = [p for p in window.ct_store.points() if p.label]
+    if points:
+        window._go_to(points[len(points) // 2].position)

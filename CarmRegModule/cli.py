@@ -1,0 +1,281 @@
+"""Command line: ``carmreg register | demo | drr | simulate | gui | screenshot``.
+
+Imports no Qt (``gui`` and ``screenshot`` import the widget layer only when called). A user error prints one
+line ``carmreg: error: ...`` and exits with code 2; success exits 0; a registration whose own checks fail
+writes its result (``ok: false``) and exits 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from Logic.errors import CarmRegError
+
+EXIT_OK, EXIT_CHECKS_FAILED, EXIT_USER_ERROR = 0, 1, 2
+
+
+class ProgressBar:
+    """Stage progress on stderr: a redrawn bar on a terminal, one line per finished stage otherwise."""
+
+    def __init__(self, stream=None, width: int = 28):
+        self.stream = stream or sys.stderr
+        self.width = width
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def __call__(self, stage: str, fraction: float, message: str = "") -> None:
+        if self.tty:
+            done = int(round(self.width * fraction))
+            bar = "#" * done + "-" * (self.width - done)
+            end = "\n" if fraction >= 1.0 else ""
+            self.stream.write(f"\r  {stage:<10} [{bar}] {100 * fraction:5.1f}%  {message[:40]:<40}{end}")
+            self.stream.flush()
+        elif fraction >= 1.0:
+            self.stream.write(f"  {stage:<10} {message}\n")
+
+
+# ---------------------------------------------------------------------------------------------- arguments
+
+def _geometry_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("C-arm geometry (overrides or completes the X-ray's DICOM tags)")
+    g.add_argument("--sdd-mm", type=float, help="source-to-detector distance, mm")
+    g.add_argument("--pixel-spacing-mm", type=float, nargs="+", metavar="MM",
+                   help="detector pixel spacing: one value, or column spacing then row spacing")
+    g.add_argument("--principal-point-px", type=float, nargs=2, metavar=("U", "V"),
+                   help="principal point (column, row) px; default: image centre")
+    g.add_argument("--sod-mm", type=float, help="source-to-isocentre (patient) distance, mm")
+    g.add_argument("--frame", type=int, help="frame of a multi-frame X-ray (0-based)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="carmreg", description="Register a preoperative CT to an "
+                                     "intraoperative C-arm X-ray by vertebral centroids.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    reg = sub.add_parser("register", help="register a CT to an X-ray")
+    reg.add_argument("--ct", required=True, help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
+    reg.add_argument("--ct-landmarks", required=True, help="CT centroids (.mrk.json or JSON), named by level")
+    reg.add_argument("--xray", required=True, help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
+    reg.add_argument("--xray-landmarks", required=True, help="X-ray centroids (.mrk.json or JSON), by level")
+    reg.add_argument("--out", required=True, help="output folder")
+    reg.add_argument("--series-uid", help="SeriesInstanceUID to read when the CT folder holds several series")
+    _registration_args(reg)
+    _geometry_args(reg)
+
+    demo = sub.add_parser("demo", help="run the whole pipeline on the embedded sample case")
+    demo.add_argument("--out", default="carmreg-out", help="output folder (default: ./carmreg-out)")
+    _registration_args(demo)
+
+    drr = sub.add_parser("drr", help="render a DRR of a CT at a C-arm pose to PNG and NRRD")
+    drr.add_argument("--ct", help="CT file or folder (default: the sample CT)")
+    drr.add_argument("--out", required=True, help="output prefix: writes PREFIX.png and PREFIX.nrrd")
+    drr.add_argument("--pose", type=float, nargs=6, default=[0, 0, 0, 0, 0, 0],
+                     metavar=("TX", "TY", "TZ", "RX", "RY", "RZ"), help="C-arm pose, mm and degrees")
+    drr.add_argument("--size-px", type=int, nargs=2, default=[512, 512], metavar=("COLS", "ROWS"))
+    drr.add_argument("--engine", choices=("cpu", "vtk"), default="cpu")
+    drr.add_argument("--xray", help="take the detector geometry from this X-ray instead")
+    _geometry_args(drr)
+
+    sim = sub.add_parser("simulate", help="simulate an intraoperative X-ray with known ground truth")
+    sim.add_argument("--ct", help="CT (default: the sample CT)")
+    sim.add_argument("--vertebrae", help="vertebra label map on the CT grid (default: the sample's)")
+    sim.add_argument("--ct-landmarks", help="CT centroids (default: the sample's)")
+    sim.add_argument("--out", required=True, help="output folder")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--level", help="level the C-arm is centred near (default: random among labelled)")
+    sim.add_argument("--size-px", type=int, default=None, help="detector columns = rows")
+
+    gui = sub.add_parser("gui", help="open the desktop application")
+    gui.add_argument("--ct")
+    gui.add_argument("--xray")
+    gui.add_argument("--ct-landmarks")
+    gui.add_argument("--xray-landmarks")
+    gui.add_argument("--sample", action="store_true", help="open with the embedded sample case")
+
+    shot = sub.add_parser("screenshot", help="export screenshots of the application offscreen")
+    shot.add_argument("--out", required=True)
+    return parser
+
+
+def _registration_args(p: argparse.ArgumentParser) -> None:
+    from Logic.similarity import METRICS
+
+    p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
+    p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
+    p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
+    p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
+
+
+# ---------------------------------------------------------------------------------------------- commands
+
+def _parameters(args):
+    from Logic.pipeline import RegistrationParameters
+    from Logic.resources import cache_dir
+
+    params = RegistrationParameters(metric=args.metric,
+                                    cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
+    params.fine.seed = args.seed
+    return params
+
+
+def _spacing(values):
+    if values is None:
+        return None
+    if len(values) not in (1, 2):
+        raise CarmRegError("--pixel-spacing-mm takes one value, or column spacing then row spacing")
+    return (values[0], values[-1])
+
+
+def _load_xray(args):
+    from Logic.xray import load_xray
+
+    return load_xray(args.xray, sdd_mm=args.sdd_mm, pixel_spacing_mm=_spacing(args.pixel_spacing_mm),
+                     principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
+                     sod_mm=args.sod_mm, frame=args.frame)
+
+
+def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None):
+    from Logic.io_volume import load_volume
+    from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
+    from Logic.pipeline import CarmRegLogic
+    from Logic.report import save_result
+
+    t0 = time.perf_counter()
+    ct = load_volume(ct_path, series_uid=series_uid)
+    ct_lm = read_landmarks_3d(ct_lm_path)
+    xray_lm = read_landmarks_2d(xray_lm_path, xray.intrinsics.pixel_spacing_mm if xray.intrinsics else None)
+    print(f"CT {Path(ct_path).name}: {ct.shape} voxels, {np.round(ct.spacing_mm, 3).tolist()} mm; "
+          f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px; "
+          f"levels CT {', '.join(ct_lm.labels)}; X-ray {', '.join(str(x) for x in xray_lm.labels)}")
+    result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
+    paths = save_result(result, out, xray.pixels, xray_lm.as_dict())
+    _print_report(result, time.perf_counter() - t0, out)
+    return result, paths
+
+
+def _print_report(result, seconds: float, out) -> None:
+    print("stage       mPDE (mm)   seconds")
+    for s in result.stages:
+        m = f"{s.mpde_mm:9.2f}" if s.mpde_mm is not None else "        -"
+        print(f"  {s.name:<10}{m}   {s.seconds:7.2f}")
+    in_image = [lv for lv in result.levels if lv["in_image"]]
+    print("levels on the X-ray: " + ", ".join(
+        f"{lv['label']}{'*' if lv['fitted'] else ''} ({lv['uv_px'][0]:.0f}, {lv['uv_px'][1]:.0f})"
+        for lv in in_image) + "   (* = clicked)")
+    print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
+          + f"; magnification {result.magnification:.2f}")
+    for w in result.warnings:
+        print(f"warning: {w}")
+    print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
+          f"carm.tfm ({seconds:.1f} s in all)")
+
+
+def cmd_register(args) -> int:
+    xray = _load_xray(args)
+    result, _ = _register(args.ct, args.ct_landmarks, xray, args.xray_landmarks, args.out, _parameters(args),
+                          args.series_uid)
+    return EXIT_OK if result.ok else EXIT_CHECKS_FAILED
+
+
+def cmd_demo(args) -> int:
+    from Logic.evaluation import evaluate
+    from Logic.landmarks import read_landmarks_3d
+    from Logic.resources import sample_case
+    from Logic.xray import load_xray
+
+    case = sample_case()
+    print(f"CarmReg demo on the embedded sample case ({case['ct'].parent})")
+    xray = load_xray(case["xray"])
+    result, _ = _register(case["ct"], case["ct_landmarks"], xray, case["xray_landmarks"], args.out,
+                          _parameters(args))
+    if case["ground_truth"].is_file():
+        truth = json.loads(case["ground_truth"].read_text())
+        centroids = read_landmarks_3d(case["ct_landmarks"]).as_dict()
+        fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
+        score = evaluate(result.projection_matrix, centroids, truth, fitted)
+        print("against the simulation's ground truth (levels not clicked): " + ", ".join(
+            f"{r['label']} {r['pde_pose_mm']:.1f} mm" for r in score["levels"] if not r["fitted"]))
+        print(f"every visible level named correctly: {'yes' if score['all_named_correctly'] else 'NO'}")
+    return EXIT_OK if result.ok else EXIT_CHECKS_FAILED
+
+
+def cmd_drr(args) -> int:
+    from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
+    from Logic.io_volume import load_volume
+    from Logic.report import save_png, to_uint8, write_drr_nrrd
+    from Logic.resources import sample_case
+    from Logic.volume import MuPyramid
+
+    ct = load_volume(args.ct or sample_case()["ct"])
+    if args.xray:
+        xray = _load_xray(args)
+        intrinsics, sod = xray.require_intrinsics(), xray.sod_mm
+    else:
+        spacing = _spacing(args.pixel_spacing_mm) or (0.5, 0.5)
+        intrinsics = CarmIntrinsics(args.sdd_mm or 1020.0, spacing, tuple(args.size_px),
+                                    tuple(args.principal_point_px) if args.principal_point_px else None,
+                                    {"sdd_mm": "manual" if args.sdd_mm else "default"})
+        sod = args.sod_mm
+    geometry = CarmGeometry(intrinsics, tuple(ct.center_lps_mm()), sod or 0.6 * intrinsics.sdd_mm)
+    pose = CarmPose.from_array(args.pose)
+    t0 = time.perf_counter()
+    if args.engine == "vtk":
+        from Logic.drr_vtk import render_line_integrals_vtk
+        drr = render_line_integrals_vtk(MuPyramid(ct).level(None), geometry, pose)
+    else:
+        from Logic.drr_cpu import render_line_integrals
+        drr = render_line_integrals(MuPyramid(ct).level(None), geometry, pose)
+    seconds = time.perf_counter() - t0
+    prefix = Path(args.out)
+    png, nrrd_path = prefix.with_suffix(".png"), prefix.with_suffix(".nrrd")
+    save_png(png, to_uint8(drr))
+    write_drr_nrrd(nrrd_path, drr, geometry, pose)
+    print(f"DRR {intrinsics.size_px[0]}x{intrinsics.size_px[1]} px ({args.engine}, {seconds:.2f} s), line integral "
+          f"{drr.min():.2f}..{drr.max():.2f}; wrote {png} and {nrrd_path}")
+    return EXIT_OK
+
+
+def cmd_simulate(args) -> int:
+    from Logic import simulate
+
+    return simulate.run_cli(args)
+
+
+def cmd_gui(args) -> int:
+    from CarmRegModule.app import run_gui
+
+    return run_gui(ct=args.ct, xray=args.xray, ct_landmarks=args.ct_landmarks,
+                   xray_landmarks=args.xray_landmarks, sample=args.sample)
+
+
+def cmd_screenshot(args) -> int:
+    from CarmRegModule.app import export_screenshots
+
+    for path in export_screenshots(args.out, sample=True):
+        print(f"wrote {path}")
+    return EXIT_OK
+
+
+COMMANDS = {"register": cmd_register, "demo": cmd_demo, "drr": cmd_drr, "simulate": cmd_simulate,
+            "gui": cmd_gui, "screenshot": cmd_screenshot}
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except CarmRegError as exc:
+        print(f"carmreg: error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("carmreg: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Side panels of the workflow: data and geometry, landmarks, registration, result."""

@@ -1,0 +1,161 @@
+"""Landmark list and level picker for one PointStore (CT or X-ray centroids).
+
+The picker shows the level the next click will place (it advances T11 -> T12 -> L1 after each click and
+skips levels already placed). The table lists the points head to sacrum; its level column renames a point,
+its row selects it (the views jump to it). Import/export buttons call the window's handlers.
+"""
+
+from __future__ import annotations
+
+from qtpy import QtCore, QtWidgets
+
+from Logic.errors import CarmRegError
+from Logic.landmarks import LEVEL_NAMES
+
+from ..qt_common import report_errors
+
+
+class LandmarkPanel(QtWidgets.QWidget):
+    """Picker + table + actions for one store."""
+
+    import_requested = QtCore.Signal()
+    export_requested = QtCore.Signal()
+    propose_requested = QtCore.Signal()
+
+    def __init__(self, store, title: str, hint: str, coordinates: str, parent=None, propose: bool = False):
+        super().__init__(parent)
+        self.store = store
+        self.dialogs = None
+        self.coordinates = coordinates
+        self.setObjectName(f"landmarks_{store.name.replace(' ', '_').replace('-', '').lower()}")
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        heading = QtWidgets.QLabel(title)
+        heading.setObjectName("heading")
+        layout.addWidget(heading)
+        tip = QtWidgets.QLabel(hint)
+        tip.setObjectName("hint")
+        tip.setWordWrap(True)
+        layout.addWidget(tip)
+
+        picker = QtWidgets.QHBoxLayout()
+        picker.addWidget(QtWidgets.QLabel("Next click places"))
+        self.level_combo = QtWidgets.QComboBox()
+        self.level_combo.addItems(LEVEL_NAMES)
+        self.level_combo.setMaxVisibleItems(16)
+        self.level_combo.setCurrentText(store.pending_level)
+        self.level_combo.currentTextChanged.connect(self._pick)
+        picker.addWidget(self.level_combo)
+        self.place_check = QtWidgets.QCheckBox("Place mode")
+        self.place_check.setChecked(True)
+        self.place_check.setToolTip("When on, a left click on the image places the level shown. "
+                                    "Shift+click or turning this off lets the left button pan.")
+        picker.addWidget(self.place_check)
+        picker.addStretch(1)
+        layout.addLayout(picker)
+
+        self.table = QtWidgets.QTableWidget(0, 3)
+        self.table.setHorizontalHeaderLabels(["Level", coordinates, ""])
+        self.table.verticalHeader().setVisible(False)
+        self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
+        self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(1, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        header.setSectionResizeMode(2, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.table.itemSelectionChanged.connect(self._row_selected)
+        self.table.setMinimumHeight(150)
+        layout.addWidget(self.table, 1)
+        self.count_label = QtWidgets.QLabel()
+        self.count_label.setObjectName("hint")
+        layout.addWidget(self.count_label)
+
+        buttons = QtWidgets.QGridLayout()
+        self.delete_button = QtWidgets.QPushButton("Delete selected")
+        self.delete_button.clicked.connect(self._delete_selected)
+        self.clear_button = QtWidgets.QPushButton("Clear all")
+        self.clear_button.clicked.connect(self._clear)
+        self.import_button = QtWidgets.QPushButton("Import .mrk.json...")
+        self.import_button.clicked.connect(self.import_requested)
+        self.export_button = QtWidgets.QPushButton("Export .mrk.json...")
+        self.export_button.clicked.connect(self.export_requested)
+        buttons.addWidget(self.delete_button, 0, 0)
+        buttons.addWidget(self.clear_button, 0, 1)
+        buttons.addWidget(self.import_button, 1, 0)
+        buttons.addWidget(self.export_button, 1, 1)
+        if propose:
+            self.propose_button = QtWidgets.QPushButton("Propose from vertebra label map...")
+            self.propose_button.setToolTip("Compute the centroid of every complete vertebra in a label map "
+                                           "(TotalSegmentator or CarmReg values) on this CT")
+            self.propose_button.clicked.connect(self.propose_requested)
+            buttons.addWidget(self.propose_button, 2, 0, 1, 2)
+        layout.addLayout(buttons)
+
+        store.changed.connect(self.refresh)
+        store.selection_changed.connect(self._select_row)
+        store.pending_level_changed.connect(self._pending_changed)
+        self.refresh()
+
+    # ------------------------------------------------------------------------------------- sync
+    def refresh(self) -> None:
+        points = self.store.points()
+        self.table.blockSignals(True)
+        self.table.setRowCount(len(points))
+        for row, point in enumerate(points):
+            combo = QtWidgets.QComboBox()
+            combo.addItems(["(unnamed)"] + LEVEL_NAMES)
+            combo.setCurrentText(point.label or "(unnamed)")
+            combo.currentTextChanged.connect(lambda text, pid=point.id: self._rename(pid, text))
+            self.table.setCellWidget(row, 0, combo)
+            coords = ", ".join(f"{x:.1f}" for x in point.position)
+            item = QtWidgets.QTableWidgetItem(coords)
+            item.setData(QtCore.Qt.ItemDataRole.UserRole, point.id)
+            self.table.setItem(row, 1, item)
+            remove = QtWidgets.QToolButton()
+            remove.setText("x")
+            remove.setToolTip(f"Delete {point.label or 'this point'}")
+            remove.clicked.connect(lambda _=False, pid=point.id: self.store.remove(pid))
+            self.table.setCellWidget(row, 2, remove)
+        self.table.blockSignals(False)
+        self._select_row(self.store.selected)
+        names = self.store.labels()
+        self.count_label.setText(f"{len(points)} point(s)" + (f": {', '.join(names)}" if names else ""))
+
+    def _select_row(self, point_id) -> None:
+        self.table.blockSignals(True)
+        self.table.clearSelection()
+        for row in range(self.table.rowCount()):
+            item = self.table.item(row, 1)
+            if item is not None and item.data(QtCore.Qt.ItemDataRole.UserRole) == point_id:
+                self.table.selectRow(row)
+        self.table.blockSignals(False)
+
+    def _row_selected(self) -> None:
+        rows = self.table.selectionModel().selectedRows()
+        if rows:
+            item = self.table.item(rows[0].row(), 1)
+            self.store.select(item.data(QtCore.Qt.ItemDataRole.UserRole))
+
+    def _pending_changed(self, label: str) -> None:
+        self.level_combo.blockSignals(True)
+        self.level_combo.setCurrentText(label)
+        self.level_combo.blockSignals(False)
+
+    def _pick(self, label: str) -> None:
+        self.store.set_pending_level(label)
+
+    @report_errors
+    def _rename(self, point_id, text: str) -> None:
+        try:
+            self.store.rename(point_id, None if text == "(unnamed)" else text)
+        except CarmRegError:
+            QtCore.QTimer.singleShot(0, self.refresh)
+            raise
+
+    def _delete_selected(self) -> None:
+        self.store.remove_selected()
+
+    def _clear(self) -> None:
+        if len(self.store):
+            self.store.replace_all([], [], text="Clear landmarks")

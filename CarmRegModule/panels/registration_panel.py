@@ -1,0 +1,233 @@
+"""Registration controls: run all stages or one at a time, progress and cancel, mPDE per stage, convergence.
+
+Stages (method paper): ``database`` (coarse DRRs over Ty, Tz), ``spatial`` (similarity search -> Ty, Tz),
+``depth`` (source-detector search on intervertebral distances -> Tx), ``fine`` (CMA-ES on the mPDE of the
+labelled centroids, 6 DOF), ``final_drr`` (full-resolution DRR at the found pose). mPDE = mean projection
+distance error on the detector, mm.
+"""
+
+from __future__ import annotations
+
+import time
+
+from qtpy import QtCore, QtWidgets
+
+STAGE_TITLES = {"database": "1a  DRR database", "spatial": "1b  Spatial search (Ty, Tz)",
+                "depth": "2   Depth search (Tx)", "fine": "3   Fine search (6 DOF)",
+                "final_drr": "    Final DRR"}
+STAGE_WEIGHTS = {"database": 0.45, "spatial": 0.1, "depth": 0.05, "fine": 0.3, "final_drr": 0.1}
+
+
+class ConvergencePlot(QtWidgets.QWidget):
+    """Best mPDE (mm) against cost evaluations of the fine stage (matplotlib, log scale)."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+
+        self.figure = Figure(figsize=(3.4, 2.1), dpi=100, facecolor="#2d3034")
+        self.canvas = FigureCanvasQTAgg(self.figure)
+        self.canvas.setMinimumHeight(170)
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        layout.addWidget(self.canvas)
+        self.axes = self.figure.add_subplot(111)
+        self.points: list[tuple[float, float]] = []
+        self.set_convergence([])
+
+    def set_convergence(self, convergence) -> None:
+        self.points = [(float(e), float(m)) for e, m in convergence]
+        ax = self.axes
+        ax.clear()
+        ax.set_facecolor("#1e2023")
+        for side in ax.spines.values():
+            side.set_color("#8a8f96")
+        ax.tick_params(colors="#c8ccd0", labelsize=7)
+        ax.set_xlabel("cost evaluations", color="#c8ccd0", fontsize=8)
+        ax.set_ylabel("best mPDE (mm)", color="#c8ccd0", fontsize=8)
+        ax.set_title("Fine stage convergence", color="#e9ecef", fontsize=9)
+        if self.points:
+            e, m = zip(*self.points, strict=True)
+            ax.plot(e, m, color="#3fa7ff", lw=1.6)
+            ax.scatter([e[-1]], [m[-1]], color="#ffd43b", s=14, zorder=3)
+            if min(m) > 0:
+                ax.set_yscale("log")
+            ax.annotate(f"{m[-1]:.2f} mm", (e[-1], m[-1]), textcoords="offset points", xytext=(-40, 8),
+                        color="#ffd43b", fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no fine stage yet", ha="center", va="center", color="#8a8f96",
+                    transform=ax.transAxes, fontsize=8)
+        ax.grid(True, color="#44484e", lw=0.5)
+        self.figure.tight_layout(pad=0.6)
+        self.canvas.draw_idle()
+
+
+class RegistrationPanel(QtWidgets.QWidget):
+    """Buttons, progress and per-stage figures (see module docstring)."""
+
+    run_all_requested = QtCore.Signal()
+    run_next_requested = QtCore.Signal()
+    cancel_requested = QtCore.Signal()
+    reset_requested = QtCore.Signal()
+
+    def __init__(self, stages: tuple[str, ...], metrics: tuple[str, ...] = (), parent=None):
+        super().__init__(parent)
+        self.setObjectName("registration_panel")
+        self.stages = tuple(stages)
+        self._done: dict[str, object] = {}
+        self._started = 0.0
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        heading = QtWidgets.QLabel("Register CT to X-ray")
+        heading.setObjectName("heading")
+        layout.addWidget(heading)
+        self.ready_label = QtWidgets.QLabel()
+        self.ready_label.setWordWrap(True)
+        layout.addWidget(self.ready_label)
+
+        form = QtWidgets.QFormLayout()
+        self.metric_combo = QtWidgets.QComboBox()
+        self.metric_combo.addItems(list(metrics) or ["gc"])
+        self.metric_combo.setToolTip("Image similarity for the spatial search (stage 1b): gc gradient "
+                                     "correlation, go gradient orientation, ncc, gi, mi, psnr, ssim")
+        form.addRow("Similarity metric", self.metric_combo)
+        self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
+        self.cache_check.setChecked(True)
+        form.addRow("", self.cache_check)
+        layout.addLayout(form)
+
+        row = QtWidgets.QHBoxLayout()
+        self.run_button = QtWidgets.QPushButton("Register (all stages)")
+        self.run_button.setObjectName("primary")
+        self.run_button.clicked.connect(self.run_all_requested)
+        self.next_button = QtWidgets.QPushButton("Run next stage")
+        self.next_button.clicked.connect(self.run_next_requested)
+        self.cancel_button = QtWidgets.QPushButton("Cancel")
+        self.cancel_button.clicked.connect(self.cancel_requested)
+        self.cancel_button.setEnabled(False)
+        row.addWidget(self.run_button, 2)
+        row.addWidget(self.next_button, 1)
+        row.addWidget(self.cancel_button, 1)
+        layout.addLayout(row)
+
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.progress.setTextVisible(True)
+        self.progress.setFormat("idle")
+        layout.addWidget(self.progress)
+        self.stage_label = QtWidgets.QLabel(" ")
+        self.stage_label.setObjectName("hint")
+        layout.addWidget(self.stage_label)
+
+        self.table = QtWidgets.QTableWidget(len(self.stages), 3)
+        self.table.setHorizontalHeaderLabels(["Stage", "mPDE (mm)", "Time (s)"])
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.NoSelection)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        for c in (1, 2):
+            header.setSectionResizeMode(c, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.table.setFixedHeight(self.table.verticalHeader().defaultSectionSize() * (len(self.stages) + 1) + 6)
+        layout.addWidget(self.table)
+        self.plot = ConvergencePlot()
+        layout.addWidget(self.plot)
+        self.status_label = QtWidgets.QLabel()
+        self.status_label.setWordWrap(True)
+        self.status_label.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        layout.addWidget(self.status_label)
+        self.reset_button = QtWidgets.QPushButton("Start over (forget stage results)")
+        self.reset_button.clicked.connect(self.reset_requested)
+        layout.addWidget(self.reset_button)
+        layout.addStretch(1)
+        self.reset()
+
+    # ------------------------------------------------------------------------------------- state
+    def parameters(self) -> dict:
+        return {"metric": self.metric_combo.currentText(), "use_cache": self.cache_check.isChecked()}
+
+    def set_ready(self, ready: bool, reason: str) -> None:
+        self.ready_label.setText(reason)
+        self.ready_label.setObjectName("ok" if ready else "warning")
+        self.ready_label.setStyleSheet(f"color: {'#69db7c' if ready else '#ffa94d'};")
+        self._ready = ready
+        self._update_buttons(running=False)
+
+    def reset(self) -> None:
+        self._done = {}
+        for row, name in enumerate(self.stages):
+            self.table.setItem(row, 0, QtWidgets.QTableWidgetItem(STAGE_TITLES.get(name, name)))
+            self.table.setItem(row, 1, QtWidgets.QTableWidgetItem("-"))
+            self.table.setItem(row, 2, QtWidgets.QTableWidgetItem("-"))
+        self.progress.setValue(0)
+        self.progress.setFormat("idle")
+        self.stage_label.setText(" ")
+        self.plot.set_convergence([])
+        self.status_label.setText("")
+        self._ready = getattr(self, "_ready", False)
+        self._update_buttons(running=False)
+
+    def next_stage(self) -> str | None:
+        return next((s for s in self.stages if s not in self._done), None)
+
+    def set_running(self, running: bool) -> None:
+        if running:
+            self._started = time.perf_counter()
+            self.status_label.setText("")
+        self._update_buttons(running)
+
+    def _update_buttons(self, running: bool) -> None:
+        ready = getattr(self, "_ready", False)
+        nxt = self.next_stage()
+        self.run_button.setEnabled(ready and not running)
+        self.next_button.setEnabled(ready and not running and nxt is not None)
+        self.next_button.setText(f"Run next: {nxt}" if nxt else "All stages done")
+        self.cancel_button.setEnabled(running)
+        self.metric_combo.setEnabled(not running and not self._done)
+        self.reset_button.setEnabled(not running and bool(self._done))
+
+    def set_progress(self, stage: str, fraction: float, message: str) -> None:
+        done = sum(STAGE_WEIGHTS.get(s, 0.0) for s in self._done if s != stage)
+        total = done + STAGE_WEIGHTS.get(stage, 0.0) * max(0.0, min(1.0, fraction))
+        self.progress.setValue(int(1000 * min(total, 1.0)))
+        self.progress.setFormat(f"{STAGE_TITLES.get(stage, stage).strip()}  {100 * fraction:.0f} %")
+        elapsed = time.perf_counter() - self._started if self._started else 0.0
+        self.stage_label.setText(f"{message}   ({elapsed:.1f} s)")
+
+    def stage_done(self, stage) -> None:
+        """Show one StageResult (name, mpde_mm, seconds, extra)."""
+        self._done[stage.name] = stage
+        row = self.stages.index(stage.name) if stage.name in self.stages else None
+        if row is not None:
+            self.table.setItem(row, 1, QtWidgets.QTableWidgetItem(
+                "-" if stage.mpde_mm is None else f"{stage.mpde_mm:.2f}"))
+            self.table.setItem(row, 2, QtWidgets.QTableWidgetItem(f"{stage.seconds:.1f}"))
+            note = ", ".join(f"{k}: {v}" for k, v in (stage.extra or {}).items()
+                             if isinstance(v, (int, float, str, bool)))
+            self.table.item(row, 0).setToolTip(note)
+        self._update_buttons(running=True)
+
+    def set_cancelled(self, message: str) -> None:
+        self.progress.setFormat("cancelled")
+        self.stage_label.setText(message)
+        self.set_running(False)
+
+    def set_result(self, result) -> None:
+        self.plot.set_convergence(result.convergence or [])
+        self.progress.setValue(1000)
+        self.progress.setFormat("done")
+        total = sum(s.seconds for s in result.stages)
+        fine = next((s for s in result.stages if s.name == "fine"), None)
+        head = ("<b style='color:#69db7c'>Registered</b>" if result.ok
+                else "<b style='color:#ff8787'>Registration check failed</b>")
+        text = head + (f" - fine mPDE {fine.mpde_mm:.2f} mm" if fine and fine.mpde_mm is not None else "")
+        text += f", magnification {result.magnification:.2f}, {total:.1f} s in total."
+        if result.warnings:
+            text += "<ul style='margin-left:-20px'>" + "".join(f"<li style='color:#ffa94d'>{w}</li>"
+                                                            for w in result.warnings) + "</ul>"
+        self.status_label.setText(text)
+        self.set_running(False)
+
+    def mpde_by_stage(self) -> dict[str, float | None]:
+        return {name: stage.mpde_mm for name, stage in self._done.items()}

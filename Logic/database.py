@@ -1,0 +1,105 @@
+"""Stage 1a: the preoperative DRR database over C-arm translations (method paper Algorithm 1).
+
+DRRs of the coarse mu level (paper: 4 mm) on the coarse detector (the X-ray's detector binned to ~4 mm
+pixels), at C-arm poses ``(tx = tx_mm, ty, tz, 0, 0, 0)`` for ty in ``ty_range_mm`` and tz in
+``tz_range_mm`` (paper: -50..+50 mm in 2 mm steps = 2601 DRRs). Stored as ``drrs[iy, iz, row, col]`` float32
+line integrals.
+
+Cache: ``<cache_dir>/db-<key>.npz``, where the key is a SHA-256 of the mu level (bytes and affine), the
+geometry (intrinsics, isocentre, SOD), the grid, and the format version: any change gives a new key.
+A cache file that cannot be read or whose stored key differs is rebuilt, never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_write
+from .camera import CarmGeometry, CarmIntrinsics
+from .drr_cpu import render_line_integrals
+from .volume import MuLevel
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class DrrDatabase:
+    ty_mm: np.ndarray           # (ny,)
+    tz_mm: np.ndarray           # (nz,)
+    tx_mm: float
+    drrs: np.ndarray            # (ny, nz, rows, cols) float32 line integrals
+    intrinsics: CarmIntrinsics  # the coarse detector the DRRs are on
+    key: str
+    seconds: float = 0.0
+    from_cache: bool = False
+
+    def poses(self) -> np.ndarray:
+        """(ny, nz, 6) pose vectors of the grid."""
+        ty, tz = np.meshgrid(self.ty_mm, self.tz_mm, indexing="ij")
+        out = np.zeros(ty.shape + (6,))
+        out[..., 0], out[..., 1], out[..., 2] = self.tx_mm, ty, tz
+        return out
+
+
+def grid(half_range_mm: float, step_mm: float, center_mm: float = 0.0) -> np.ndarray:
+    """Symmetric grid center +- half_range in steps (both ends included)."""
+    n = int(round(half_range_mm / step_mm))
+    return center_mm + step_mm * np.arange(-n, n + 1, dtype=np.float64)
+
+
+def database_key(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
+                 tz_mm: np.ndarray, tx_mm: float) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(level.mu_per_mm).tobytes())
+    h.update(np.asarray(level.ijk_to_lps, np.float64).tobytes())
+    desc = {"v": FORMAT_VERSION, "sdd": intrinsics.sdd_mm, "px": list(intrinsics.pixel_spacing_mm),
+            "size": list(intrinsics.size_px), "pp": list(intrinsics.principal_point_px),
+            "iso": [float(x) for x in geometry.isocenter_lps_mm], "sod": geometry.sod_mm,
+            "ty": [float(x) for x in ty_mm], "tz": [float(x) for x in tz_mm], "tx": float(tx_mm),
+            "shape": list(level.mu_per_mm.shape)}
+    h.update(json.dumps(desc, sort_keys=True).encode())
+    return h.hexdigest()[:24]
+
+
+def _load_cached(path: Path, key: str) -> np.ndarray | None:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) != key:
+                return None
+            return np.array(data["drrs"], dtype=np.float32)
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError):
+        return None
+
+
+def build_database(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
+                   tz_mm: np.ndarray, tx_mm: float = 0.0, cache_dir: str | Path | None = None,
+                   progress=None, chunk: int = 256) -> DrrDatabase:
+    """Render (or load from cache) the database. ``progress(fraction)`` is called between chunks."""
+    import time
+
+    start = time.perf_counter()
+    key = database_key(level, geometry, intrinsics, ty_mm, tz_mm, tx_mm)
+    path = Path(cache_dir) / f"db-{key}.npz" if cache_dir else None
+    if path is not None and path.is_file():
+        drrs = _load_cached(path, key)
+        if drrs is not None and drrs.shape[:2] == (len(ty_mm), len(tz_mm)):
+            return DrrDatabase(ty_mm, tz_mm, tx_mm, drrs, intrinsics, key, time.perf_counter() - start, True)
+    db = DrrDatabase(ty_mm, tz_mm, tx_mm, np.empty(0), intrinsics, key)
+    poses = db.poses().reshape(-1, 6)
+    cols, rows = intrinsics.size_px
+    flat = np.empty((len(poses), rows, cols), np.float32)
+    for i in range(0, len(poses), chunk):
+        flat[i:i + chunk] = render_line_integrals(level, geometry, poses[i:i + chunk], intrinsics)
+        if progress:
+            progress(min(1.0, (i + chunk) / len(poses)))
+    db.drrs = flat.reshape(len(ty_mm), len(tz_mm), rows, cols)
+    if path is not None:
+        atomic_write(path, lambda tmp: np.savez(tmp, drrs=db.drrs, key=np.array(key)))
+    db.seconds = time.perf_counter() - start
+    return db

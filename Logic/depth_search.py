@@ -1,0 +1,72 @@
+"""Stage 2: 1-DOF source-to-detector search on intervertebral distances (method paper Algorithm 3).
+
+With (ty, tz) from stage 1b and no rotation, the C-arm is moved along its source->detector axis from a far
+point toward the patient. For each tx the CT centroids are projected and the distances between consecutive
+levels (cyclically, i -> i+1 mod N, as in the paper) are compared with those between the clicked X-ray
+centroids::
+
+    D(tx) = sum_i | |p_i - p_{i+1}| - |x_i - x_{i+1}| |      (detector mm)
+
+The coarse scan uses ``step_mm`` (paper: 10 mm); the minimum is then refined by a bounded scalar search
+(Brent) inside the neighbouring steps. The result fixes the magnification SDD / (source-to-isocentre depth).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from .camera import CarmGeometry, project
+
+
+@dataclass
+class DepthResult:
+    tx_mm: float
+    magnification: float
+    cost_mm: float
+    tx_scan_mm: np.ndarray
+    cost_scan_mm: np.ndarray
+    seconds: float
+
+
+def _consecutive_lengths(uv: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """|x_i - x_{i+1 mod N}| in detector mm for (..., N, 2) pixel positions."""
+    return np.linalg.norm((uv - np.roll(uv, -1, axis=-2)) * spacing, axis=-1)
+
+
+def tx_limits(geometry: CarmGeometry, min_magnification: float = 1.05,
+              max_magnification: float = 3.0) -> tuple[float, float]:
+    """tx range keeping the isocentre magnification SDD / (SOD - tx) within the given C-arm range."""
+    sdd, sod = geometry.intrinsics.sdd_mm, geometry.sod_mm
+    return sod - sdd / min_magnification, sod - sdd / max_magnification
+
+
+def depth_search(geometry: CarmGeometry, ty_mm: float, tz_mm: float, points_lps_mm: np.ndarray,
+                 uv_px: np.ndarray, far_mm: float = 400.0, step_mm: float = 10.0) -> DepthResult:
+    """Scan tx from -far_mm toward the patient in ``step_mm`` steps, then refine; see module docstring."""
+    start = time.perf_counter()
+    spacing = np.asarray(geometry.intrinsics.pixel_spacing_mm, float)
+    target = _consecutive_lengths(np.asarray(uv_px, float), spacing)
+    lo, hi = tx_limits(geometry)
+    lo = max(lo, -far_mm)
+    scan = np.arange(lo, hi + 1e-9, step_mm)
+
+    def cost(tx) -> np.ndarray:
+        tx = np.atleast_1d(np.asarray(tx, float))
+        poses = np.zeros((len(tx), 6))
+        poses[:, 0], poses[:, 1], poses[:, 2] = tx, ty_mm, tz_mm
+        uv = project(geometry.projection_matrix(poses), points_lps_mm)
+        return np.abs(_consecutive_lengths(uv, spacing) - target).sum(axis=-1)
+
+    costs = cost(scan)
+    i = int(np.argmin(costs))
+    bracket = (scan[max(i - 1, 0)], scan[min(i + 1, len(scan) - 1)])
+    refined = minimize_scalar(lambda t: float(cost(t)[0]), bounds=bracket, method="bounded",
+                              options={"xatol": 0.05})
+    tx = float(refined.x) if refined.fun <= costs[i] else float(scan[i])
+    pose = np.array([tx, ty_mm, tz_mm, 0.0, 0.0, 0.0])
+    return DepthResult(tx, float(geometry.magnification(pose)), float(cost(tx)[0]), scan, costs,
+                       time.perf_counter() - start)

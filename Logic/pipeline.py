@@ -1,0 +1,329 @@
+"""The logic class: the three-stage registration, orchestrated (method paper 3.1.6 and 3.2).
+
+``CarmRegLogic`` is what the CLI, the GUI and the headless tests drive. It takes explicit arguments, raises
+``CarmRegError`` on bad input, reports progress through ``progress(stage, fraction, message)`` and honours
+``cancel()`` between steps (``CancelledError``).
+
+Stages (each a plain function in its own module, returning a small result):
+  database  - DRRs of the 4 mm mu level over a (ty, tz) grid at tx = 0 (``database``, Algorithm 1), cached;
+  spatial   - similarity of the coarse X-ray with every DRR -> (ty, tz) (``spatial_search``, Algorithm 2);
+  depth     - intervertebral distances -> tx, magnification (``depth_search``, Algorithm 3);
+  fine      - anchored CMA-ES on the mPDE -> 6-DOF pose (``fine_search``, Algorithm 4);
+  final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
+
+Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
+``sod_mm`` from it (the X-ray's DICOM DistanceSourceToPatient when known, else ``default_sod_fraction`` x SDD).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import CarmGeometry, CarmPose, project
+from .database import DrrDatabase, build_database, grid
+from .depth_search import DepthResult, depth_search, tx_limits
+from .drr_cpu import render_line_integrals
+from .errors import CancelledError, LandmarkError, RegistrationError
+from .fine_search import FineParameters, FineResult, fine_search
+from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label
+from .pde import mpde_mm, pde_mm
+from .spatial_search import SpatialResult, spatial_search
+from .volume import MuPyramid, Volume
+from .xray import XrayImage
+from .xray_prep import attenuation, bin_image, bin_mask, coarse_factor, field_mask
+
+STAGES = ("database", "spatial", "depth", "fine", "final_drr")
+
+
+@dataclass
+class RegistrationParameters:
+    """Every choice of the pipeline, with the paper's value where it gives one."""
+
+    metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
+    coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
+    ty_half_range_mm: float = 50.0          # medio-lateral search +- (paper: 50)
+    tz_half_range_mm: float | None = None   # superior-inferior +-; None = cover every labelled CT level
+    grid_step_mm: float = 2.0               # database step (paper: 2 mm)
+    depth_far_mm: float = 400.0             # farthest source retreat (paper: 40-50 cm)
+    depth_step_mm: float = 10.0             # paper: 10 mm
+    fine: FineParameters = field(default_factory=FineParameters)
+    final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
+    default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
+    max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
+    magnification_range: tuple = (1.05, 3.0)
+    cache_dir: str | None = None
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["fine"] = dict(self.fine.__dict__)
+        return d
+
+
+@dataclass
+class StageResult:
+    name: str
+    pose: CarmPose
+    mpde_mm: float | None
+    seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class RegistrationState:
+    """Everything the stages share; filled stage by stage."""
+
+    ct: Volume
+    ct_landmarks: Landmarks3D
+    xray: XrayImage
+    xray_landmarks: Landmarks2D
+    parameters: RegistrationParameters
+    geometry: CarmGeometry
+    pairs: Pairs
+    pyramid: MuPyramid
+    xray_line_integral: np.ndarray
+    mask: np.ndarray
+    coarse_factor: int
+    database: DrrDatabase | None = None
+    spatial: SpatialResult | None = None
+    depth: DepthResult | None = None
+    fine: FineResult | None = None
+    drr_line_integral: np.ndarray | None = None
+    stages: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The best pose so far (6,)."""
+        if self.fine is not None:
+            return self.fine.pose
+        if self.depth is not None:
+            return np.array([self.depth.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
+        if self.spatial is not None:
+            return np.array([self.database.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
+        return np.zeros(6)
+
+
+@dataclass
+class RegistrationResult:
+    pose: CarmPose
+    projection_matrix: np.ndarray
+    geometry: CarmGeometry
+    stages: list
+    levels: list                    # [{"label", "uv_px", "fitted", "pde_mm"}] for every CT-labelled level
+    drr_line_integral: np.ndarray | None
+    xray_line_integral: np.ndarray
+    convergence: list
+    trajectory: list
+    similarity_maps: dict
+    database_grid: dict
+    ok: bool
+    warnings: list
+    parameters: RegistrationParameters
+    inputs: dict = field(default_factory=dict)
+
+    @property
+    def magnification(self) -> float:
+        return float(self.geometry.magnification(self.pose))
+
+
+class CarmRegLogic:
+    """Headless logic class: ``register(...)`` or ``prepare(...)`` then ``run_stage(state, name)``."""
+
+    def __init__(self, progress=None):
+        self.progress = progress
+        self._cancel = False
+
+    # ------------------------------------------------------------------ control
+    def cancel(self) -> None:
+        self._cancel = True
+
+    def _check_cancel(self) -> None:
+        if self._cancel:
+            self._cancel = False
+            raise CancelledError("registration cancelled by the user")
+
+    def _report(self, stage: str, fraction: float, message: str = "") -> None:
+        self._check_cancel()
+        if self.progress is not None:
+            self.progress(stage, float(fraction), message)
+
+    # ------------------------------------------------------------------ setup
+    def prepare(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
+                parameters: RegistrationParameters | None = None) -> RegistrationState:
+        """Validate inputs and set up geometry, pyramid and the attenuation image; no stage is run."""
+        self._cancel = False
+        params = parameters or RegistrationParameters()
+        intrinsics = xray.require_intrinsics()
+        if intrinsics.size_px != xray.size_px:
+            raise RegistrationError(f"the geometry's detector size {intrinsics.size_px} px differs from the "
+                                    f"X-ray image {xray.size_px} px; check the pixel spacing and image")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pairs = pair_by_label(ct_landmarks, xray_landmarks)
+        notes = [str(w.message) for w in caught]
+        _check_landmarks(ct, ct_landmarks, xray, pairs)
+        sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
+        geometry = CarmGeometry(intrinsics, tuple(float(x) for x in ct.center_lps_mm()), float(sod))
+        mask = field_mask(xray.pixels, xray.bone_dark)
+        line_integral = attenuation(xray.pixels, mask, xray.bone_dark)
+        factor = coarse_factor(intrinsics.pixel_spacing_mm, params.coarse_spacing_mm)
+        return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs,
+                                 MuPyramid(ct), line_integral, mask, factor, warnings=notes)
+
+    def register(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
+                 parameters: RegistrationParameters | None = None) -> RegistrationResult:
+        """Run every stage and return the result (``ok`` False, with reasons, when a check fails)."""
+        state = self.prepare(ct, ct_landmarks, xray, xray_landmarks, parameters)
+        for name in STAGES:
+            self.run_stage(state, name)
+        return self.result(state)
+
+    # ------------------------------------------------------------------ stages
+    def run_stage(self, state: RegistrationState, name: str) -> StageResult:
+        runner = {"database": self._database, "spatial": self._spatial, "depth": self._depth,
+                  "fine": self._fine, "final_drr": self._final_drr}.get(name)
+        if runner is None:
+            raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
+        self._report(name, 0.0, f"{name} started")
+        start = time.perf_counter()
+        extra = runner(state) or {}
+        pose = state.pose
+        m = float(mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px)) \
+            if name in ("spatial", "depth", "fine") else None
+        stage = StageResult(name, CarmPose.from_array(pose), m, time.perf_counter() - start, extra)
+        state.stages = [s for s in state.stages if s.name != name] + [stage]
+        self._report(name, 1.0, f"{name} done" + (f": mPDE {m:.2f} mm" if m is not None else ""))
+        return stage
+
+    def _coarse_grid(self, state: RegistrationState) -> tuple[np.ndarray, np.ndarray]:
+        p = state.parameters
+        ty = grid(p.ty_half_range_mm, p.grid_step_mm)
+        if p.tz_half_range_mm is not None:
+            return ty, grid(p.tz_half_range_mm, p.grid_step_mm)
+        iso_z = state.geometry.isocenter_lps_mm[2]
+        z = state.ct_landmarks.points_lps_mm[:, 2] - iso_z
+        lo, hi = np.floor((z.min() - 20.0) / p.grid_step_mm), np.ceil((z.max() + 20.0) / p.grid_step_mm)
+        return ty, p.grid_step_mm * np.arange(min(lo, -1), max(hi, 1) + 1)
+
+    def _database(self, state: RegistrationState) -> dict:
+        p = state.parameters
+        level = state.pyramid.level(p.coarse_spacing_mm)
+        intr = state.geometry.intrinsics.binned(state.coarse_factor)
+        ty, tz = self._coarse_grid(state)
+        state.database = build_database(level, state.geometry, intr, ty, tz, 0.0, p.cache_dir,
+                                        progress=lambda f: self._report("database", f, "rendering DRRs"))
+        return {"drrs": int(len(ty) * len(tz)), "from_cache": state.database.from_cache,
+                "detector_px": list(intr.size_px), "key": state.database.key}
+
+    def _spatial(self, state: RegistrationState) -> dict:
+        xc = bin_image(state.xray_line_integral, state.coarse_factor)
+        mc = bin_mask(state.mask, state.coarse_factor)
+        rows, cols = state.database.drrs.shape[2:]
+        state.spatial = spatial_search(state.database, xc[:rows, :cols], mc[:rows, :cols],
+                                       state.parameters.metric)
+        per_metric = {}
+        for name, (ty, tz) in state.spatial.best_by_metric.items():
+            pose = np.array([state.database.tx_mm, ty, tz, 0, 0, 0])
+            per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": float(
+                mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px))}
+        return {"metric": state.parameters.metric, "per_metric": per_metric}
+
+    def _depth(self, state: RegistrationState) -> dict:
+        p = state.parameters
+        state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
+                                   state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm)
+        return {"tx_mm": state.depth.tx_mm, "magnification": state.depth.magnification,
+                "intervertebral_cost_mm": state.depth.cost_mm}
+
+    def _fine(self, state: RegistrationState) -> dict:
+        start = state.pose
+        state.fine = fine_search(state.geometry, start, state.pairs.points_lps_mm, state.pairs.uv_px,
+                                 state.parameters.fine, should_stop=self._check_cancel)
+        return {"evaluations": state.fine.evaluations, "objective": state.fine.objective}
+
+    def _final_drr(self, state: RegistrationState) -> dict:
+        intr = state.geometry.intrinsics
+        cols, rows = intr.size_px
+        scale = min(1.0, state.parameters.final_drr_max_px / max(cols, rows))
+        target = intr if scale >= 1.0 else intr.scaled_to((int(round(cols * scale)), int(round(rows * scale))))
+        drr = render_line_integrals(state.pyramid.level(None), state.geometry, state.pose, target)
+        if target is not intr:
+            from scipy import ndimage
+            drr = ndimage.zoom(drr, (rows / drr.shape[0], cols / drr.shape[1]), order=1)
+        state.drr_line_integral = drr.astype(np.float32)
+        return {"detector_px": list(target.size_px)}
+
+    # ------------------------------------------------------------------ result
+    def result(self, state: RegistrationState) -> RegistrationResult:
+        pose = CarmPose.from_array(state.pose)
+        P = state.geometry.projection_matrix(pose)
+        fitted = set(state.pairs.labels)
+        clicked = state.xray_landmarks.as_dict()
+        spacing = state.geometry.intrinsics.pixel_spacing_mm
+        levels = []
+        for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
+            uv = project(P, point[None])[0]
+            pde = float(pde_mm(P, point[None], clicked[label][None], spacing)[0]) if label in clicked else None
+            levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
+                           "pde_mm": pde, "in_image": _in_image(uv, state.geometry.intrinsics.size_px)})
+        problems = self._checks(state, pose)
+        spatial = state.spatial
+        return RegistrationResult(
+            pose=pose, projection_matrix=P, geometry=state.geometry, stages=list(state.stages), levels=levels,
+            drr_line_integral=state.drr_line_integral, xray_line_integral=state.xray_line_integral,
+            convergence=state.fine.convergence if state.fine else [],
+            trajectory=state.fine.trajectory if state.fine else [],
+            similarity_maps=spatial.maps if spatial else {},
+            database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
+            if state.database else {},
+            ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
+            inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
+                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
+
+    def _checks(self, state: RegistrationState, pose: CarmPose) -> list[str]:
+        """The pipeline's own sanity checks; any message here makes ``ok`` False."""
+        problems = []
+        p = state.parameters
+        if state.fine is None:
+            problems.append("the fine stage did not run")
+        elif state.fine.mpde_mm > p.max_fine_mpde_mm:
+            problems.append(f"fine-stage mPDE {state.fine.mpde_mm:.1f} mm exceeds {p.max_fine_mpde_mm:.1f} mm: "
+                            "the landmarks do not agree with any rigid C-arm pose; check the level names")
+        mag = float(state.geometry.magnification(pose))
+        lo, hi = p.magnification_range
+        if not lo <= mag <= hi:
+            problems.append(f"magnification {mag:.2f} is outside the C-arm range {lo}-{hi}; check SDD, pixel "
+                            "spacing and the landmarks")
+        if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
+            problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
+        lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
+        if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
+            problems.append("the found source-to-detector position is outside the searched range")
+        return problems
+
+
+def _in_image(uv: np.ndarray, size_px: tuple[int, int]) -> bool:
+    return bool(-0.5 <= uv[0] <= size_px[0] - 0.5 and -0.5 <= uv[1] <= size_px[1] - 0.5)
+
+
+def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, pairs: Pairs) -> None:
+    """Refuse points outside the CT or the image, and degenerate (coincident) point sets."""
+    outside = [lb for lb, inside in zip(ct_landmarks.labels, ct.contains_lps(ct_landmarks.points_lps_mm),
+                                        strict=True) if not inside]
+    if outside:
+        raise LandmarkError(f"CT landmark(s) {', '.join(outside)} lie outside the CT volume: check the "
+                            "landmark file's coordinate system (LPS vs RAS) and that it belongs to this CT")
+    cols, rows = xray.size_px
+    off = [lb for lb, uv in zip(pairs.labels, pairs.uv_px, strict=True) if not _in_image(uv, (cols, rows))]
+    if off:
+        raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image: "
+                            "check they are (column, row) pixels of this X-ray")
+    for name, pts in (("CT", pairs.points_lps_mm), ("X-ray", pairs.uv_px)):
+        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
+        if d.min() < 1.0:
+            raise LandmarkError(f"two {name} landmarks are less than 1 {'mm' if name == 'CT' else 'px'} apart: "
+                                "each level needs its own centroid")

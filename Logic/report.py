@@ -1,0 +1,222 @@
+"""Write a registration result: result.json, overlay, DRR (PNG + NRRD with geometry), .tfm, figures.
+
+Files (all written atomically into ``out_dir``):
+- ``result.json``: ``ok`` and ``warnings``; ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
+  ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
+  ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
+  and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
+  ``parameters``; ``reproducibility`` (versions, seed).
+- ``overlay.png``: the X-ray with the DRR's bone blended in cyan and every CT-labelled level's projected centroid
+  and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings.
+- ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; 2D image embedded in LPS:
+  ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step along columns and rows).
+- ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).
+- ``convergence.png`` (paper Fig. 9-10) and ``similarity_maps.png`` (paper Fig. 6).
+"""
+
+from __future__ import annotations
+
+import io
+import platform
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from . import __version__
+from .atomic import atomic_write, atomic_write_bytes, atomic_write_json
+from .camera import pixel_to_detector_lps
+
+FITTED_RGB = (40, 220, 90)
+CLICK_RGB = (255, 60, 60)
+OTHER_RGB = (255, 210, 40)
+EDGE_RGB = np.array([0, 200, 255], float)
+
+
+def result_dict(result) -> dict:
+    """JSON-ready summary of a RegistrationResult."""
+    import cma
+    import numba
+    import scipy
+
+    g = result.geometry
+    intr = g.intrinsics
+    return {
+        "ok": bool(result.ok),
+        "warnings": list(result.warnings),
+        "projection_matrix": np.asarray(result.projection_matrix, float).tolist(),
+        "projection_convention": "homogeneous LPS mm -> homogeneous (column, row) px; 0-based pixel centres",
+        "pose": result.pose.as_dict(),
+        "magnification": result.magnification,
+        "source_lps_mm": g.source_lps_mm(result.pose).tolist(),
+        "geometry": {"sdd_mm": intr.sdd_mm, "pixel_spacing_mm": list(intr.pixel_spacing_mm),
+                     "size_px": list(intr.size_px), "principal_point_px": list(intr.principal_point_px),
+                     "isocenter_lps_mm": list(g.isocenter_lps_mm), "sod_mm": g.sod_mm,
+                     "sources": dict(result.inputs.get("geometry_sources", {}))},
+        "stages": [{"name": s.name, "mpde_mm": s.mpde_mm, "seconds": round(s.seconds, 4),
+                    "pose": s.pose.as_dict(), **_jsonable(s.extra)} for s in result.stages],
+        "levels": result.levels,
+        "parameters": _jsonable(result.parameters.as_dict()),
+        "inputs": result.inputs,
+        "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
+                            "numpy": np.__version__, "scipy": scipy.__version__, "cma": cma.__version__,
+                            "numba": numba.__version__, "seed": result.parameters.fine.seed},
+    }
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5, 99.5)) -> np.ndarray:
+    """Window an image to 0..255 by percentiles (inside ``mask`` when given)."""
+    vals = image[mask] if mask is not None and mask.any() else image.ravel()
+    lo, hi = np.percentile(vals, percentiles)
+    return (np.clip((image - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
+
+
+def _font(size: int):
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        return ImageFont.load_default()
+
+
+def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float) -> np.ndarray:
+    """Blend the DRR's bone (its band-pass detail: 2-px blur minus 25-px blur, positive part) in cyan."""
+    from scipy import ndimage
+
+    scale = max(drr.shape) / 768.0
+    detail = ndimage.gaussian_filter(drr, 2.0 * scale) - ndimage.gaussian_filter(drr, 25.0 * scale)
+    alpha = np.clip(detail / max(np.percentile(detail, 99.5), 1e-9), 0, 1)[..., None] * strength
+    return rgb * (1 - alpha) + EDGE_RGB * alpha
+
+
+def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list,
+                  clicked: dict | None = None, edge_strength: float = 0.6) -> Image.Image:
+    """RGB overlay: X-ray (as displayed) + DRR bone in cyan + projected, named centroids."""
+    gray = to_uint8(np.asarray(xray_pixels, float)).astype(float)
+    rgb = np.repeat(gray[..., None], 3, axis=2)
+    if drr_line_integral is not None:
+        rgb = _tint_bone(rgb, np.asarray(drr_line_integral, float), edge_strength)
+    img = Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8))
+    draw = ImageDraw.Draw(img)
+    size = max(img.size)
+    r, font = max(4, size // 100), _font(max(12, size // 40))
+    for level in levels:
+        u, v = level["uv_px"]
+        if level["fitted"]:
+            draw.ellipse([u - r, v - r, u + r, v + r], fill=FITTED_RGB, outline=(0, 0, 0))
+        else:
+            draw.ellipse([u - r, v - r, u + r, v + r], outline=OTHER_RGB, width=max(2, r // 2))
+        colour = FITTED_RGB if level["fitted"] else OTHER_RGB
+        draw.text((u + 2 * r, v - r), level["label"], fill=colour, font=font, stroke_width=2,
+                  stroke_fill=(0, 0, 0))
+    for uv in (clicked or {}).values():
+        u, v = uv
+        draw.line([u - 2 * r, v, u + 2 * r, v], fill=CLICK_RGB, width=2)
+        draw.line([u, v - 2 * r, u, v + 2 * r], fill=CLICK_RGB, width=2)
+    return img
+
+
+def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:
+    img = image if isinstance(image, Image.Image) else Image.fromarray(image)
+    return atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
+
+
+def write_drr_nrrd(path: str | Path, line_integral: np.ndarray, geometry, pose) -> Path:
+    """2D float32 NRRD embedded in LPS (origin = pixel (0, 0) on the detector, one-pixel direction steps)."""
+    import nrrd
+
+    corners = pixel_to_detector_lps(geometry, pose, np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
+    header = {"space": "left-posterior-superior", "space origin": corners[0],
+              "space directions": np.stack([corners[1] - corners[0], corners[2] - corners[0]]),
+              "kinds": ["domain", "domain"], "encoding": "gzip",
+              "projection_matrix": " ".join(f"{x:.9g}" for x in
+                                            np.asarray(geometry.projection_matrix(pose)).ravel()),
+              "content": "CarmReg DRR line integral (dimensionless); axis 0 = column u, axis 1 = row v"}
+    data = np.ascontiguousarray(np.asarray(line_integral, np.float32).T)  # nrrd axis 0 fastest = columns
+    return atomic_write(path, lambda tmp: nrrd.write(str(tmp), data, header))
+
+
+def _figure_bytes(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def convergence_figure(result) -> bytes:
+    """mPDE over evaluations and the pose parameters' trajectory (paper Fig. 9-10)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    if result.convergence:
+        ev, m, _ = np.array(result.convergence).T
+        a.semilogy(ev, np.maximum(m, 1e-3), color="tab:blue")
+    a.set(xlabel="evaluations", ylabel="best mPDE (detector mm)", title="Fine stage: mPDE")
+    if result.trajectory:
+        ev = np.array([t[0] for t in result.trajectory])
+        poses = np.array([t[1] for t in result.trajectory])
+        final = result.pose.as_array()
+        names = ["tx mm", "ty mm", "tz mm", "rx deg", "ry deg", "rz deg"]
+        for k in range(6):
+            b.plot(ev, poses[:, k] - final[k], label=names[k])
+        b.legend(fontsize=7, ncol=2)
+    b.set(xlabel="evaluations", ylabel="mean - final", title="Fine stage: parameters")
+    data = _figure_bytes(fig)
+    plt.close(fig)
+    return data
+
+
+def similarity_figure(result) -> bytes:
+    """One panel per metric: similarity over (ty, tz), the chosen metric's best marked (paper Fig. 6)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    maps = result.similarity_maps
+    ty, tz = np.array(result.database_grid.get("ty_mm", [0])), np.array(result.database_grid.get("tz_mm", [0]))
+    fig, axes = plt.subplots(1, max(1, len(maps)), figsize=(2.6 * max(1, len(maps)), 3.4), squeeze=False)
+    for ax, (name, m) in zip(axes[0], maps.items(), strict=False):
+        ax.imshow(m.T, origin="lower", aspect="auto", extent=[ty[0], ty[-1], tz[0], tz[-1]], cmap="viridis")
+        iy, iz = np.unravel_index(int(np.argmax(m)), m.shape)
+        ax.plot(ty[iy], tz[iz], "r+", ms=10)
+        ax.set(title=name.upper(), xlabel="ty mm")
+    axes[0][0].set_ylabel("tz mm")
+    data = _figure_bytes(fig)
+    plt.close(fig)
+    return data
+
+
+def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None) -> dict:
+    """Write every output file; returns {name: path}."""
+    from .transform_io import write_tfm
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
+             "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
+                                                                    result.levels, clicked))}
+    if result.drr_line_integral is not None:
+        paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
+        paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,
+                                           result.pose)
+    rotation, t = result.geometry.extrinsics(result.pose)
+    lps_to_camera = np.eye(4)
+    lps_to_camera[:3, :3], lps_to_camera[:3, 3] = rotation, t
+    paths["tfm"] = write_tfm(out / "carm.tfm", lps_to_camera,
+                             comment="lps_to_camera: CT LPS mm -> C-arm camera mm (origin at the X-ray source)")
+    paths["convergence"] = atomic_write_bytes(out / "convergence.png", convergence_figure(result))
+    if result.similarity_maps:
+        paths["similarity"] = atomic_write_bytes(out / "similarity_maps.png", similarity_figure(result))
+    return paths

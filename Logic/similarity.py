@@ -1,0 +1,147 @@
+"""Image similarity between one X-ray and a stack of DRRs (method paper Eq. 4-13, plus GC and GO).
+
+Every metric takes ``fixed`` (h, w) and ``moving`` (n, h, w) float arrays on the same pixel grid and a boolean
+``mask`` (h, w) of pixels to compare (the X-ray's exposed field), and returns (n,) scores where **larger is more
+similar**. Images are compared as attenuation (line-integral-like: bone bright); see ``xray_prep``.
+
+- NCC  (Eq. 13): Pearson correlation of intensities in the mask.
+- PSNR (Eq. 10-11): 10 log10(R^2 / MSE) after each image is scaled to [0, 1] by its 1st-99th percentile in the
+  mask (R = 1), since DRR and X-ray intensities have different units.
+- SSIM (Eq. 12): mean over the mask (windows wholly inside it) of the local SSIM (7x7 uniform windows,
+  C1 = 0.01^2, C2 = 0.03^2) of the [0, 1]-scaled images.
+- MI   (Eq. 4-6): H(A) + H(B) - H(A, B) from a 32x32 joint histogram of the scaled images, in nats.
+- GI   (Eq. 7-9): mean over the mask of w min(|grad A|, |grad B|), w = (cos a + 1) / 2, gradients of the
+  z-scored images (central differences).
+- GC: gradient correlation, mean of the NCC of the column- and row-derivative images.
+- GO: gradient orientation (De Silva et al. 2016): mean over pixels where both gradient magnitudes exceed their
+  median of (cos 2a + 1) / 2 = cos^2 a, insensitive to polarity and to the strength of edges.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+METRICS = ("gc", "go", "ncc", "gi", "mi", "psnr", "ssim")
+
+
+def _masked(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(n, h, w) -> (n, m) values inside the mask."""
+    return stack.reshape(stack.shape[0], -1)[:, mask.ravel()]
+
+
+def _zscore(values: np.ndarray) -> np.ndarray:
+    """Row-wise zero mean, unit norm; constant rows become zeros."""
+    v = values - values.mean(axis=-1, keepdims=True)
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-12)
+
+
+def _unit_range(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Scale each image to [0, 1] by its 1st-99th percentile inside the mask (clipped)."""
+    vals = _masked(stack, mask)
+    lo = np.percentile(vals, 1, axis=1)[:, None, None]
+    hi = np.percentile(vals, 99, axis=1)[:, None, None]
+    return np.clip((stack - lo) / np.maximum(hi - lo, 1e-9), 0.0, 1.0).astype(np.float32)
+
+
+def ncc(fixed, moving, mask):
+    f = _zscore(_masked(fixed[None], mask))
+    return _zscore(_masked(moving, mask)) @ f[0]
+
+
+def psnr(fixed, moving, mask):
+    f = _masked(_unit_range(fixed[None], mask), mask)
+    m = _masked(_unit_range(moving, mask), mask)
+    mse = np.mean((m - f) ** 2, axis=1)
+    return 10.0 * np.log10(1.0 / np.maximum(mse, 1e-12))
+
+
+def ssim(fixed, moving, mask, window: int = 7):
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    a = _unit_range(fixed[None], mask)
+    b = _unit_range(moving, mask)
+    size = (1, window, window)
+    mu_a, mu_b = ndimage.uniform_filter(a, size), ndimage.uniform_filter(b, size)
+    var_a = ndimage.uniform_filter(a * a, size) - mu_a ** 2
+    var_b = ndimage.uniform_filter(b * b, size) - mu_b ** 2
+    cov = ndimage.uniform_filter(a * b, size) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    inner = ndimage.binary_erosion(mask, np.ones((window, window), bool))
+    return _masked(s, inner if inner.any() else mask).mean(axis=1)
+
+
+def mi(fixed, moving, mask, bins: int = 32):
+    f = np.minimum((_masked(_unit_range(fixed[None], mask), mask)[0] * bins).astype(np.int64), bins - 1)
+    m = np.minimum((_masked(_unit_range(moving, mask), mask) * bins).astype(np.int64), bins - 1)
+    n, npx = m.shape
+    index = (np.arange(n)[:, None] * bins * bins + m * bins + f[None, :]).ravel()
+    joint = np.bincount(index, minlength=n * bins * bins).reshape(n, bins, bins) / npx
+    pm, pf = joint.sum(axis=2), joint.sum(axis=1)
+
+    def entropy(p, axes):
+        return -np.sum(np.where(p > 0, p * np.log(np.where(p > 0, p, 1.0)), 0.0), axis=axes)
+
+    return entropy(pm, 1) + entropy(pf, 1) - entropy(joint, (1, 2))
+
+
+def _gradients(stack: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference derivatives along columns (gu) and rows (gv) of z-scored images."""
+    vals = _masked(stack, mask)
+    mean = vals.mean(axis=1)[:, None, None]
+    std = np.maximum(vals.std(axis=1), 1e-9)[:, None, None]
+    z = (stack - mean) / std
+    gu = np.zeros_like(z)
+    gv = np.zeros_like(z)
+    gu[:, :, 1:-1] = 0.5 * (z[:, :, 2:] - z[:, :, :-2])
+    gv[:, 1:-1, :] = 0.5 * (z[:, 2:, :] - z[:, :-2, :])
+    return gu, gv
+
+
+def _inner_mask(mask: np.ndarray) -> np.ndarray:
+    """Mask pixels whose 3x3 neighbourhood is inside the mask (no gradients across the field edge)."""
+    inner = ndimage.binary_erosion(mask, np.ones((3, 3), bool))
+    return inner if inner.any() else mask
+
+
+def gi(fixed, moving, mask):
+    inner = _inner_mask(mask)
+    fu, fv = _gradients(fixed[None], mask)
+    mu, mv = _gradients(moving, mask)
+    fu, fv, mu, mv = (_masked(g, inner) for g in (fu, fv, mu, mv))
+    fmag, mmag = np.hypot(fu, fv), np.hypot(mu, mv)
+    cos = (fu * mu + fv * mv) / np.maximum(fmag * mmag, 1e-12)
+    return np.mean((cos + 1.0) / 2.0 * np.minimum(fmag, mmag), axis=1)
+
+
+def gc(fixed, moving, mask):
+    inner = _inner_mask(mask)
+    fu, fv = _gradients(fixed[None], mask)
+    mu, mv = _gradients(moving, mask)
+    return 0.5 * (ncc(fu[0], mu, inner) + ncc(fv[0], mv, inner))
+
+
+def go(fixed, moving, mask):
+    inner = _inner_mask(mask)
+    fu, fv = _gradients(fixed[None], mask)
+    mu, mv = _gradients(moving, mask)
+    fu, fv, mu, mv = (_masked(g, inner) for g in (fu, fv, mu, mv))
+    fmag, mmag = np.hypot(fu, fv), np.hypot(mu, mv)
+    cos2 = (fu * mu + fv * mv) ** 2 / np.maximum((fmag * mmag) ** 2, 1e-24)
+    strong = (fmag > np.median(fmag)) & (mmag > np.median(mmag, axis=1, keepdims=True))
+    return np.sum(cos2 * strong, axis=1) / np.maximum(strong.sum(axis=1), 1)
+
+
+FUNCTIONS = {"gc": gc, "go": go, "ncc": ncc, "gi": gi, "mi": mi, "psnr": psnr, "ssim": ssim}
+
+
+def similarity(metric: str, fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None,
+               chunk: int = 512) -> np.ndarray:
+    """Scores (n,) of ``moving`` (n, h, w) against ``fixed`` (h, w); larger = more similar. Chunked for memory."""
+    if metric not in FUNCTIONS:
+        raise ValueError(f"unknown metric {metric!r}; choose one of {', '.join(METRICS)}")
+    fixed = np.asarray(fixed, dtype=np.float32)
+    moving = np.asarray(moving, dtype=np.float32).reshape(-1, *fixed.shape)
+    mask = np.ones(fixed.shape, bool) if mask is None else np.asarray(mask, bool)
+    out = [FUNCTIONS[metric](fixed, moving[i:i + chunk], mask) for i in range(0, len(moving), chunk)]
+    return np.concatenate(out).astype(np.float64)

@@ -1,0 +1,78 @@
+"""Shared pytest fixtures: where the optional real data live, and small synthetic volumes.
+
+Real data are optional: tests that need them skip cleanly when they are absent, so the suite runs from a
+bare checkout. ``../shared`` (beside the repository) holds the TotalSegmentator test CTs; the product
+itself never needs it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DIR = REPO_ROOT.parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def shared_data_dir() -> Path:
+    """``../shared/data``; skips the test when it is absent."""
+    path = SHARED_DIR / "data"
+    if not path.is_dir():
+        pytest.skip(f"shared data folder {path} is absent")
+    return path
+
+
+@pytest.fixture(scope="session")
+def totalseg_dir(shared_data_dir: Path) -> Path:
+    """The TotalSegmentator test CTs (NIfTI); skips when absent."""
+    path = shared_data_dir / "totalsegmentator-tests"
+    if not (path / "example_ct_sm.nii.gz").is_file():
+        pytest.skip(f"TotalSegmentator test CTs are absent from {path}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def sample_case_dir() -> Path:
+    """``Resources/SampleCase``; skips when its CT (ct.nrrd) has not been generated."""
+    path = REPO_ROOT / "Resources" / "SampleCase"
+    if not (path / "ct.nrrd").is_file():
+        pytest.skip("Resources/SampleCase/ct.nrrd is absent (run the sample-case script)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def small_real_ct(totalseg_dir: Path):
+    """A small real CT (122 x 101 x 30 voxels at 3 mm, int16 HU) as a Volume; skips when absent."""
+    from Logic.io_volume import load_volume
+
+    return load_volume(totalseg_dir / "example_ct_sm.nii.gz")
+
+
+def oblique_affine(spacing_mm=(0.7, 0.8, 2.0), angles_deg=(20.0, -15.0, 30.0),
+                   origin_lps_mm=(-101.25, 37.5, 812.125)) -> np.ndarray:
+    """A 4x4 ijk -> LPS with rotated (oblique) orthonormal directions and anisotropic spacing."""
+    from scipy.spatial.transform import Rotation
+
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_euler("xyz", angles_deg, degrees=True).as_matrix() * np.asarray(
+        spacing_mm)[None, :]
+    affine[:3, 3] = origin_lps_mm
+    return affine
+
+
+@pytest.fixture
+def oblique_volume():
+    """A 24 x 20 x 9 int16 volume with an oblique affine and distinct values (-1000 .. ~3000 HU)."""
+    from Logic.volume import Volume
+
+    rng = np.random.default_rng(7)
+    hu = rng.integers(-1000, 3000, size=(24, 20, 9)).astype(np.int16)
+    return Volume(hu, oblique_affine(), "synthetic-oblique")
