@@ -67,13 +67,14 @@ def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool) -
 
 
 def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, register: bool = True,
-                       size=(1600, 1000)) -> list[Path]:
+                       size=(1600, 1000), parameters: dict | None = None) -> list[Path]:
     """Headless PNG screenshots of the window and its views; returns the written paths.
 
     views: any of "window" (the state after loading/registering), "window_data", "window_ct", "window_xray",
     "window_register", "window_check" (the whole window at that workflow step), "axial", "coronal",
     "sagittal", "ct" (the four CT views), "xray", "overlay", "3d", "result" (overlay + 3D with the C-arm).
-    sample: load the embedded sample case first; register: run the registration when a view needs it.
+    sample: load the embedded sample case first; register: run the registration when a view needs it;
+    parameters: RegistrationParameters fields to override (e.g. a smaller search range).
     Files are named ``carmreg_<view>.png``. Raises CarmRegError on bad arguments or a failed load.
     """
     from .main_window import SCREENSHOT_VIEWS, CarmRegWidget
@@ -87,6 +88,7 @@ def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, regist
     ensure_app()
     dialogs = ScriptedDialogs()
     window = CarmRegWidget(dialogs=dialogs, autosave=False)
+    window.parameter_overrides = dict(parameters or {})
     window.resize(*size)
     window.show()
     process_events(50)

@@ -106,6 +106,8 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     from Logic.similarity import METRICS
 
     p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
+    p.add_argument("--all-metrics", action="store_true",
+                   help="compute the similarity maps of all seven metrics (the chosen one still decides)")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -117,7 +119,7 @@ def _parameters(args):
     from Logic.pipeline import RegistrationParameters
     from Logic.resources import cache_dir
 
-    params = RegistrationParameters(metric=args.metric,
+    params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
     params.fine.seed = args.seed
     return params
@@ -153,7 +155,7 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
           f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px; "
           f"levels CT {', '.join(ct_lm.labels)}; X-ray {', '.join(str(x) for x in xray_lm.labels)}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
-    paths = save_result(result, out, xray.pixels, xray_lm.as_dict())
+    paths = save_result(result, out, xray.pixels, xray_lm.as_dict(), xray.bone_dark)
     _print_report(result, time.perf_counter() - t0, out)
     return result, paths
 

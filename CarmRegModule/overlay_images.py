@@ -2,7 +2,8 @@
 
 Inputs are two images of the same shape indexed image[row, column]: the X-ray as displayed and the DRR line
 integral at the found pose (bone bright). Each is normalised to 0..1 between its 1st and 99.5th percentile
-(``normalise``); the X-ray is first flipped to bone-bright when ``bone_dark`` so both read alike.
+inside the exposed field (``normalise``; black outside it); the X-ray is flipped to bone-bright when
+``bone_dark`` so both read alike.
 """
 
 from __future__ import annotations
@@ -14,18 +15,22 @@ DRR_TINT = np.array([1.0, 0.62, 0.25], np.float32)  # DRR drawn in amber in blen
 EDGE_COLOR = np.array([0.25, 1.0, 0.45], np.float32)
 
 
-def normalise(image: np.ndarray, low_pct: float = 1.0, high_pct: float = 99.5) -> np.ndarray:
-    """Linear map of the percentile range to 0..1 (float32, clipped)."""
+def normalise(image: np.ndarray, mask: np.ndarray | None = None, low_pct: float = 1.0,
+              high_pct: float = 99.5) -> np.ndarray:
+    """Linear map of the percentile range (inside ``mask``, the exposed field) to 0..1; 0 outside the mask."""
     img = np.asarray(image, np.float32)
-    sample = img[:: max(1, img.shape[0] // 256), :: max(1, img.shape[1] // 256)]
+    inside = img[mask] if mask is not None and mask.any() else img.ravel()
+    sample = inside[:: max(1, inside.size // 250_000)]
     lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
-    return np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    out = np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
 
 
-def xray_bone_bright(pixels: np.ndarray, bone_dark: bool) -> np.ndarray:
-    """The X-ray normalised to 0..1 with bone bright."""
-    x = normalise(pixels)
-    return 1.0 - x if bone_dark else x
+def xray_bone_bright(pixels: np.ndarray, bone_dark: bool, mask: np.ndarray | None = None) -> np.ndarray:
+    """The X-ray normalised to 0..1 with bone bright; 0 (black) outside the exposed field ``mask``."""
+    x = normalise(pixels, mask)
+    x = 1.0 - x if bone_dark else x
+    return x if mask is None else np.where(mask, x, 0.0).astype(np.float32)
 
 
 def blend(xray01: np.ndarray, drr01: np.ndarray, alpha: float) -> np.ndarray:
@@ -47,13 +52,19 @@ def checkerboard(xray01: np.ndarray, drr01: np.ndarray, tiles: int = 8) -> np.nd
 
 
 def edges(xray01: np.ndarray, drr01: np.ndarray, strength: float = 1.0) -> np.ndarray:
-    """RGB: the X-ray in grey with the DRR's bone edges (gradient magnitude, top 10 %) in green."""
+    """RGB: the X-ray in grey with the DRR's strongest edges (top 8 % gradient, Gaussian sigma 2 px) in green.
+
+    Only edges well inside the DRR's footprint count, so the border of the CT volume (where rays leave the
+    scan) is not mistaken for anatomy."""
     from scipy import ndimage
 
-    smooth = ndimage.gaussian_filter(drr01, 1.5)
-    grad = np.hypot(ndimage.sobel(smooth, 0), ndimage.sobel(smooth, 1))
-    threshold = np.percentile(grad, 90)
-    edge = np.clip((grad - threshold) / max(grad.max() - threshold, 1e-6) * 3.0, 0, 1) * float(strength)
+    footprint = ndimage.binary_erosion(drr01 > 0.02, iterations=max(3, drr01.shape[0] // 100))
+    smooth = ndimage.gaussian_filter(drr01, 2.0)
+    grad = np.hypot(ndimage.sobel(smooth, 0), ndimage.sobel(smooth, 1)) * footprint
+    inside = grad[footprint] if footprint.any() else grad.ravel()
+    threshold = np.percentile(inside, 92)
+    edge = np.clip((grad - threshold) / max(float(grad.max() - threshold), 1e-6) * 3.0, 0, 1) * float(strength)
+    edge = np.clip(edge, 0.0, 1.0)
     grey = xray01[..., None] * np.ones(3, np.float32) * 0.85
     return to_u8(grey * (1 - edge[..., None]) + edge[..., None] * EDGE_COLOR[None, None, :])
 

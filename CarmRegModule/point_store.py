@@ -205,8 +205,7 @@ class PointStore(QtCore.QObject):
             self._next_id += 1
             self._points[point.id] = Point(point.id, point.label, point.position.copy())
         self.select(None)
-        last = self.labels()[-1] if self.labels() else None
-        self.set_pending_level(self.next_free_level(last))
+        self._refresh_pending()
         self.changed.emit()
 
     def _snapshot(self) -> list[Point]:
@@ -216,7 +215,16 @@ class PointStore(QtCore.QObject):
         self._points = {p.id: Point(p.id, p.label, p.position.copy()) for p in points}
         if self.selected not in self._points:
             self.select(None)
+        self._refresh_pending()
         self.changed.emit()
+
+    def _refresh_pending(self) -> None:
+        """After bulk changes: propose the level after the last one placed if the current one is taken."""
+        labels = self.labels()
+        if not labels:
+            return
+        if self.pending_level in labels or len(labels) == len(self._points):
+            self.set_pending_level(self.next_free_level(labels[-1]))
 
 
 # ------------------------------------------------------------------------------------------ commands

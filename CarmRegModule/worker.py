@@ -3,7 +3,8 @@
 ``RegistrationWorker(logic, job)`` is a QThread; ``job(logic, report_stage)`` does the work (prepare, stages,
 result) and returns what the GUI needs. The logic's ``progress(stage, fraction, message)`` callback is called
 from this thread; Qt queues the ``progress`` signal to the GUI thread. Cancel = ``logic.cancel()``; the logic
-raises ``CancelledError`` at its next check and the worker reports it through ``failed``.
+raises ``CancelledError`` at its next check (the worker also stops between stages) and the worker reports it
+through ``failed``.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import traceback
 
 from qtpy import QtCore
+
+from Logic.errors import CancelledError
 
 
 class RegistrationWorker(QtCore.QThread):
@@ -26,17 +29,26 @@ class RegistrationWorker(QtCore.QThread):
         self.logic = logic
         self.job = job
         self.logic.progress = self._progress
+        self._cancel_requested = False
 
     def _progress(self, stage: str, fraction: float, message: str) -> None:
+        if self._cancel_requested:
+            self.logic.cancel()  # again: preparing a run clears the logic's flag
         self.progress.emit(str(stage), float(fraction), str(message))
+
+    def _stage_done(self, stage) -> None:
+        self.stage_done.emit(stage)
+        if self._cancel_requested:
+            raise CancelledError("registration cancelled by the user")
 
     def run(self) -> None:
         try:
-            value = self.job(self.logic, self.stage_done.emit)
+            value = self.job(self.logic, self._stage_done)
         except Exception as exc:  # noqa: BLE001 - handed to the GUI thread, which shows it
             self.failed.emit(exc, traceback.format_exc())
             return
         self.succeeded.emit(value)
 
     def cancel(self) -> None:
+        self._cancel_requested = True
         self.logic.cancel()

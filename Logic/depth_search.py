@@ -9,6 +9,11 @@ centroids::
 
 The coarse scan uses ``step_mm`` (paper: 10 mm); the minimum is then refined by a bounded scalar search
 (Brent) inside the neighbouring steps. The result fixes the magnification SDD / (source-to-isocentre depth).
+
+Then (``recenter``, beyond the paper) the C-arm is translated parallel to the detector so that the mean
+projected centroid meets the mean clicked centroid: a 2x2 Newton step on (ty, tz) with a finite-difference
+Jacobian, twice. Distances between levels do not change with that shift, so D(tx) is kept while the
+translation error the coarse 2 mm / 4 mm grid left behind goes.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ from .camera import CarmGeometry, project
 @dataclass
 class DepthResult:
     tx_mm: float
+    ty_mm: float
+    tz_mm: float
     magnification: float
     cost_mm: float
     tx_scan_mm: np.ndarray
@@ -45,7 +52,8 @@ def tx_limits(geometry: CarmGeometry, min_magnification: float = 1.05,
 
 
 def depth_search(geometry: CarmGeometry, ty_mm: float, tz_mm: float, points_lps_mm: np.ndarray,
-                 uv_px: np.ndarray, far_mm: float = 400.0, step_mm: float = 10.0) -> DepthResult:
+                 uv_px: np.ndarray, far_mm: float = 400.0, step_mm: float = 10.0,
+                 recenter: bool = True) -> DepthResult:
     """Scan tx from -far_mm toward the patient in ``step_mm`` steps, then refine; see module docstring."""
     start = time.perf_counter()
     spacing = np.asarray(geometry.intrinsics.pixel_spacing_mm, float)
@@ -68,5 +76,29 @@ def depth_search(geometry: CarmGeometry, ty_mm: float, tz_mm: float, points_lps_
                               options={"xatol": 0.05})
     tx = float(refined.x) if refined.fun <= costs[i] else float(scan[i])
     pose = np.array([tx, ty_mm, tz_mm, 0.0, 0.0, 0.0])
-    return DepthResult(tx, float(geometry.magnification(pose)), float(cost(tx)[0]), scan, costs,
-                       time.perf_counter() - start)
+    if recenter:
+        pose = recenter_pose(geometry, pose, points_lps_mm, uv_px)
+    return DepthResult(tx, float(pose[1]), float(pose[2]), float(geometry.magnification(pose)),
+                       float(cost(tx)[0]), scan, costs, time.perf_counter() - start)
+
+
+def recenter_pose(geometry: CarmGeometry, pose: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,
+                  iterations: int = 2) -> np.ndarray:
+    """Shift (ty, tz) so the mean projected point lands on the mean clicked point (Newton, numeric Jacobian)."""
+    pose = np.asarray(pose, float).copy()
+    target = np.asarray(uv_px, float).mean(axis=0)
+
+    def mean_uv(p):
+        return project(geometry.projection_matrix(p), points_lps_mm).mean(axis=0)
+
+    for _ in range(iterations):
+        base = mean_uv(pose)
+        jac = np.empty((2, 2))
+        for k, axis in enumerate((1, 2)):
+            step = pose.copy()
+            step[axis] += 1.0
+            jac[:, k] = mean_uv(step) - base
+        if abs(np.linalg.det(jac)) < 1e-9:
+            break
+        pose[1:3] += np.linalg.solve(jac, target - base)
+    return pose

@@ -34,7 +34,9 @@ one thread.
 
 from __future__ import annotations
 
+import ctypes.util
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -108,17 +110,19 @@ def _opengl_projection(intr: CarmIntrinsics, near_mm: float, far_mm: float) -> n
 
 def _new_render_window():
     """An offscreen render window: X/GLX when $DISPLAY is set, otherwise EGL (then OSMesa) if available."""
+    from vtkmodules import vtkRenderingOpenGL2  # registers the OpenGL implementation of vtkRenderWindow
     from vtkmodules.vtkRenderingCore import vtkRenderWindow
 
+    has_osmesa = ctypes.util.find_library("OSMesa") is not None  # VTK's OSMesa window claims support without it
     candidates = []
     if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
-        from vtkmodules import vtkRenderingOpenGL2
-
-        names = ("vtkEGLRenderWindow", "vtkOSOpenGLRenderWindow")
+        names = ["vtkEGLRenderWindow"] + (["vtkOSOpenGLRenderWindow"] if has_osmesa else [])
         candidates = [getattr(vtkRenderingOpenGL2, n) for n in names if hasattr(vtkRenderingOpenGL2, n)]
     for cls in candidates + [vtkRenderWindow]:
         window = cls()
         window.SetOffScreenRendering(1)
+        if window.GetClassName() == "vtkOSOpenGLRenderWindow" and not has_osmesa:
+            continue
         if window.SupportsOpenGL():
             return window
     raise RegistrationError("VTK could not create an OpenGL context for the VTK DRR engine (no display, EGL "
@@ -333,7 +337,9 @@ def vtk_rendering_status(timeout_s: float = 60.0) -> tuple[bool, str]:
                                   timeout=timeout_s)
             tail = (done.stdout.strip().splitlines() or [""])[-1]
             ok = done.returncode == 0 and tail == "OK"
-            message = "ok" if ok else (tail or done.stderr.strip().splitlines()[-1:] or ["failed"])[0]
+            errors = [re.sub(r"\x1b\[[0-9;]*m", "", line) for line in done.stderr.splitlines()
+                      if line.strip() and "WARN" not in line]
+            message = "ok" if ok else (tail or (errors or [f"exit code {done.returncode}"])[-1])
         except (OSError, subprocess.TimeoutExpired) as exc:
             ok, message = False, f"probe failed: {exc}"
         _cache["probe"] = (ok, str(message))

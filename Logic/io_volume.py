@@ -21,7 +21,10 @@ Formats
   ``ElementDataFile`` LOCAL or one external raw file, ``CompressedData`` (zlib), byte order.
   MetaImage worlds are LPS (ITK); ``AnatomicalOrientation`` is recorded in ``meta`` only.
 
-Every reader estimates the memory first and refuses volumes above ``MAX_VOLUME_BYTES`` (8 GiB).
+Every reader estimates the memory first and refuses volumes above ``MAX_VOLUME_BYTES`` (8 GiB). Every
+reader refuses what would give a silently wrong volume: fewer than 2 voxels along an axis, NaN or infinite
+voxel values, a singular or non-finite affine; and turns every failure of the underlying library on a
+damaged file into an ``InputFileError`` naming the file.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import numpy as np
 from .atomic import atomic_write
 from .errors import InputFileError
 from .volume import Volume
+from .xray import DICOM_PARSE_ERRORS, describe, dicom_int, dicom_numbers, parse_all_elements
 
 MAX_VOLUME_BYTES = 8 * 1024**3
 """Largest volume (bytes in memory) a reader accepts."""
@@ -75,8 +79,11 @@ def _has_dicom_marker(path: Path) -> bool:
 # ----------------------------------------------------------------------------------------------- shared
 
 def check_memory(shape, bytes_per_voxel: int, path: Path | str) -> None:
-    """Refuse a volume whose array would need more than MAX_VOLUME_BYTES."""
-    n_bytes = int(np.prod([int(n) for n in shape], dtype=np.float64)) * int(bytes_per_voxel)
+    """Refuse a volume whose array would need more than MAX_VOLUME_BYTES (or with a negative size)."""
+    if any(int(n) < 0 for n in shape):
+        raise InputFileError(f"{path}: the header gives a negative image size {list(shape)}; the file is "
+                             "damaged")
+    n_bytes = float(np.prod([float(n) for n in shape])) * int(bytes_per_voxel)
     if n_bytes > MAX_VOLUME_BYTES:
         raise InputFileError(f"{path}: the volume {'x'.join(str(int(n)) for n in shape)} needs "
                              f"{n_bytes / 1024**3:.1f} GiB, more than the "
@@ -98,6 +105,20 @@ def as_hu(data: np.ndarray) -> np.ndarray:
     return data
 
 
+def _checked_volume(data: np.ndarray, affine: np.ndarray, path: Path, meta: dict) -> Volume:
+    """A Volume from reader output, refusing what would silently go wrong later: a flat or empty grid,
+    NaN or infinite voxels (the DRR would be NaN), a singular or non-finite affine (``Volume`` checks)."""
+    if min(data.shape) < 2:
+        raise InputFileError(f"{path}: the volume is {'x'.join(str(n) for n in data.shape)} voxels; a CT "
+                             "for registration needs at least 2 voxels along every axis (is it one slice?)")
+    if np.issubdtype(data.dtype, np.floating):
+        lo, hi = float(np.min(data)), float(np.max(data))
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise InputFileError(f"{path}: {int(np.count_nonzero(~np.isfinite(data)))} voxel(s) are NaN or "
+                                 "infinite; fill them (e.g. with -1000 HU, air) before loading the CT")
+    return Volume(data, affine, str(path), meta)
+
+
 def _spatial_3d(data: np.ndarray, path: Path) -> np.ndarray:
     """Drop trailing singleton axes (e.g. NIfTI t=1); refuse anything that is not one 3D scalar volume."""
     while data.ndim > 3 and data.shape[-1] == 1:
@@ -112,39 +133,57 @@ def _spatial_3d(data: np.ndarray, path: Path) -> np.ndarray:
 
 def _load_nifti(path: Path) -> Volume:
     import nibabel as nib
-    from nibabel.filebasedimages import ImageFileError
 
     try:
         image = nib.load(str(path))
-    except (ImageFileError, OSError, EOFError, ValueError, zlib.error) as exc:
-        raise InputFileError(f"{path}: not a readable NIfTI file ({exc.__class__.__name__}: "
-                             f"{str(exc)[:100]})") from None
-    shape = image.shape
-    check_memory(shape, 4 + np.dtype(image.get_data_dtype()).itemsize, path)
-    affine_ras, which = _nifti_affine(image)
+        shape = image.shape
+        itemsize = np.dtype(image.get_data_dtype()).itemsize
+    except _nifti_errors() as exc:
+        raise InputFileError(f"{path}: not a readable NIfTI file ({describe(exc, 100)})") from None
+    check_memory(shape, 4 + itemsize, path)
     try:
-        data = _nifti_data(image)
-    except (OSError, EOFError, ValueError, zlib.error) as exc:
+        affine_ras, which = _nifti_affine(image)
+    except _nifti_errors() as exc:
+        raise InputFileError(f"{path}: the NIfTI orientation (sform/qform) cannot be read "
+                             f"({describe(exc, 80)}); the header is damaged") from None
+    try:
+        data = _nifti_data(image, path)
+    except _nifti_errors() as exc:
         raise InputFileError(f"{path}: the NIfTI voxel data cannot be read; the file is probably truncated "
-                             f"({exc.__class__.__name__}: {str(exc)[:80]}); copy it again") from None
+                             f"({describe(exc, 80)}); copy it again") from None
     data = as_hu(_spatial_3d(np.asarray(data), path))
     meta = {"format": "NIfTI", "affine_from": which}
     if which == "fallback":
         meta["warning_orientation"] = ("NIfTI header has neither sform nor qform; orientation assumed, "
                                        "check left/right in the views")
-    return Volume(data, LPS_FROM_RAS @ affine_ras, str(path), meta)
+    return _checked_volume(data, LPS_FROM_RAS @ affine_ras, path, meta)
 
 
-def _nifti_data(image) -> np.ndarray:
-    """Scaled voxel values; integer stored values with integer slope/intercept stay integers (no float64)."""
+def _nifti_errors() -> tuple:
+    """What nibabel raises on a damaged or truncated file."""
+    from nibabel.filebasedimages import ImageFileError
+    from nibabel.spatialimages import HeaderDataError
+
+    return (ImageFileError, HeaderDataError, OSError, EOFError, ValueError, TypeError, OverflowError,
+            zlib.error, np.linalg.LinAlgError)
+
+
+def _nifti_data(image, path: Path) -> np.ndarray:
+    """Scaled voxel values; integer stored values with integer slope/intercept stay integers (no float64)
+    as long as the scaled values fit int32."""
     proxy = image.dataobj
     slope, inter = float(getattr(proxy, "slope", 1.0)), float(getattr(proxy, "inter", 0.0))
+    if not (np.isfinite(slope) and np.isfinite(inter)):
+        raise InputFileError(f"{path}: NIfTI scaling scl_slope = {slope}, scl_inter = {inter} is not finite; "
+                             "the header is damaged")
     if (np.issubdtype(image.get_data_dtype(), np.integer) and hasattr(proxy, "get_unscaled")
             and slope == round(slope) and inter == round(inter)):
         stored = np.asarray(proxy.get_unscaled())
         if slope == 1.0 and inter == 0.0:
             return stored
-        return stored.astype(np.int32) * int(slope) + int(inter)
+        extreme = max(abs(int(stored.min())), abs(int(stored.max()))) if stored.size else 0
+        if abs(slope) * extreme + abs(inter) < 2**31:
+            return stored.astype(np.int32) * np.int32(slope) + np.int32(inter)
     return np.asarray(np.asanyarray(proxy), dtype=np.float32)
 
 
@@ -172,22 +211,23 @@ NRRD_SPACE_TO_LPS = {
 def _load_nrrd(path: Path) -> Volume:
     import nrrd
 
+    errors = (nrrd.NRRDError, OSError, EOFError, UnicodeError, ValueError, KeyError, IndexError, TypeError,
+              OverflowError, zlib.error)
     try:
         header = nrrd.read_header(str(path))
-    except (nrrd.NRRDError, OSError, UnicodeDecodeError, ValueError, KeyError) as exc:
-        raise InputFileError(f"{path}: not a readable NRRD header ({exc.__class__.__name__}: "
-                             f"{str(exc)[:100]})") from None
-    sizes = [int(s) for s in header.get("sizes", [])]
+        sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
+    except errors as exc:
+        raise InputFileError(f"{path}: not a readable NRRD header ({describe(exc, 100)})") from None
     check_memory(sizes, 4 + _nrrd_itemsize(header), path)
     try:
         data, header = nrrd.read(str(path), index_order="F")
-    except (nrrd.NRRDError, OSError, EOFError, ValueError, zlib.error, KeyError) as exc:
+    except errors as exc:
         raise InputFileError(f"{path}: the NRRD voxel data cannot be read; the file or its data file is "
-                             f"probably truncated or missing ({exc.__class__.__name__}: {str(exc)[:80]})") \
+                             f"probably truncated or missing ({describe(exc, 80)})") \
             from None
     data = as_hu(_spatial_3d(data, path))
     affine, meta = _nrrd_affine(header, path)
-    return Volume(data, affine, str(path), meta)
+    return _checked_volume(data, affine, path, meta)
 
 
 def _nrrd_itemsize(header: dict) -> int:
@@ -214,14 +254,24 @@ def _nrrd_affine(header: dict, path: Path) -> tuple[np.ndarray, dict]:
     affine = np.eye(4)
     directions = header.get("space directions")
     if directions is not None:
-        rows = np.array([d for d in np.asarray(directions, dtype=float) if np.all(np.isfinite(d))])
-        if rows.shape != (3, 3):
-            raise InputFileError(f"{path}: NRRD 'space directions' does not describe 3 spatial axes")
+        try:
+            rows = np.array([d for d in np.asarray(directions, dtype=float) if np.all(np.isfinite(d))])
+            origin = header.get("space origin")
+            origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=float).ravel()
+        except (TypeError, ValueError):
+            rows, origin = np.zeros(0), np.zeros(0)
+        if rows.shape != (3, 3) or origin.shape != (3,):
+            raise InputFileError(f"{path}: NRRD 'space directions' / 'space origin' do not describe 3 "
+                                 "spatial axes")
         affine[:3, :3] = rows.T
-        origin = header.get("space origin")
-        affine[:3, 3] = np.zeros(3) if origin is None else np.asarray(origin, dtype=float)
+        affine[:3, 3] = origin
     else:
-        spacings = np.asarray(header.get("spacings", [1.0, 1.0, 1.0]), dtype=float)
+        try:
+            spacings = np.asarray(header.get("spacings", [1.0, 1.0, 1.0]), dtype=float).ravel()
+        except (TypeError, ValueError):
+            spacings = np.zeros(0)
+        if spacings.shape != (3,):
+            raise InputFileError(f"{path}: NRRD 'spacings' does not give 3 spacings")
         affine[:3, :3] = np.diag(np.where(np.isfinite(spacings), spacings, 1.0))
         meta["warning_orientation"] = "NRRD has no 'space directions'; axes taken as LPS from the origin"
     return np.diag([*flips, 1.0]) @ affine, meta
@@ -256,17 +306,19 @@ def _load_metaimage(path: Path) -> Volume:
     if len(shape) != 3 and not (len(shape) == 4 and shape[3] == 1):
         raise InputFileError(f"{path}: MetaImage has {len(shape)} dimensions; expected a 3D volume")
     shape = shape[:3]
-    if int(header.get("ElementNumberOfChannels", "1")) != 1:
-        raise InputFileError(f"{path}: MetaImage has several channels per voxel; give a scalar CT")
+    if header.get("ElementNumberOfChannels", "1").strip() != "1":
+        raise InputFileError(f"{path}: MetaImage has ElementNumberOfChannels = "
+                             f"{header['ElementNumberOfChannels']!r}; give a scalar CT (one value per voxel)")
     dtype = _metaimage_dtype(header, path)
     check_memory(shape, 4 + dtype.itemsize, path)
-    raw = _metaimage_bytes(path, header, data_offset, int(np.prod(shape)) * dtype.itemsize)
-    data = np.frombuffer(raw, dtype=dtype, count=int(np.prod(shape))).reshape(shape, order="F")
+    n_voxels = int(np.prod(shape))
+    raw = _metaimage_bytes(path, header, data_offset, n_voxels * dtype.itemsize)
+    data = np.frombuffer(raw, dtype=dtype, count=n_voxels).reshape(shape, order="F")
     meta = {"format": "MetaImage"}
     if "AnatomicalOrientation" in header:
         meta["anatomical_orientation"] = header["AnatomicalOrientation"]
     data = as_hu(data.astype(dtype.newbyteorder("=")))
-    return Volume(data, _metaimage_affine(header, path), str(path), meta)
+    return _checked_volume(data, _metaimage_affine(header, path), path, meta)
 
 
 def _read_metaimage_header(path: Path) -> tuple[dict, int]:
@@ -316,9 +368,12 @@ def _ints(header: dict, key: str, path: Path) -> list[int]:
     if key not in header:
         raise InputFileError(f"{path}: MetaImage header has no {key}")
     try:
-        return [int(x) for x in header[key].split()]
+        values = [int(x) for x in header[key].split()]
     except ValueError:
         raise InputFileError(f"{path}: MetaImage field {key} = {header[key]!r} is not integers") from None
+    if not values or min(values) < 0:
+        raise InputFileError(f"{path}: MetaImage field {key} = {header[key]!r} is not a list of sizes")
+    return values
 
 
 def _metaimage_dtype(header: dict, path: Path) -> np.dtype:
@@ -347,8 +402,10 @@ def _metaimage_bytes(path: Path, header: dict, data_offset: int, n_bytes: int) -
             raise InputFileError(f"{path}: MetaImage data file {data_path} not found; keep it beside the "
                                  "header")
         raw = data_path.read_bytes()
-        skip = int(header.get("HeaderSize", "0"))
-        raw = raw[-n_bytes:] if skip == -1 else raw[skip:]
+        if header.get("HeaderSize", "").strip() == "-1":  # the data are the last bytes of the file
+            raw = raw[-n_bytes:]
+        elif "HeaderSize" in header:
+            raw = raw[_ints(header, "HeaderSize", path)[0]:]
     if header.get("CompressedData", "False").lower() == "true":
         try:
             raw = zlib.decompressobj(zlib.MAX_WBITS | 32).decompress(raw)
@@ -399,12 +456,12 @@ def load_dicom_series(folder: str | Path, *, series_uid: str | None = None) -> V
     _check_ct(series, folder)
     ordered, affine, spacing_note = _slice_geometry(series, folder)
     first = ordered[0][1]
-    check_memory((int(first.Columns), int(first.Rows), len(ordered)), 2 + 4, folder)
+    check_memory((*_columns_rows(first, ordered[0][0]), len(ordered)), 2 + 4, folder)
     hu = _read_slices(ordered, lambda path: _slice_pixels(path))
     meta = {"format": "DICOM", "series_uid": str(first.get("SeriesInstanceUID", "")),
             "series_description": str(first.get("SeriesDescription", "")), "n_slices": len(ordered),
             "skipped_files": skipped, "slice_spacing": spacing_note}
-    return Volume(hu, affine, str(folder), meta)
+    return _checked_volume(hu, affine, folder, meta)
 
 
 def load_dicom_file(path: str | Path, *, series_uid: str | None = None) -> Volume:
@@ -415,24 +472,41 @@ def load_dicom_file(path: str | Path, *, series_uid: str | None = None) -> Volum
     ds = _read_header(path, pydicom)
     if ds is None:
         raise InputFileError(f"{path}: not a readable DICOM file")
-    if int(ds.get("NumberOfFrames", 1) or 1) > 1:
+    if dicom_int(ds, "NumberOfFrames", 1, path) > 1:
         return load_enhanced_ct(path)
     return load_dicom_series(path.parent, series_uid=series_uid or str(ds.get("SeriesInstanceUID", "")))
 
 
 def _read_header(path: Path, pydicom):
-    """Header without pixels, or None when the file is not DICOM."""
+    """Header without pixels (every element decoded), or None when the file is not DICOM.
+
+    A file that says it is DICOM (the 'DICM' marker) but cannot be parsed raises InputFileError rather than
+    being skipped, so a damaged slice is named instead of silently dropped from the series.
+    """
     from pydicom.errors import InvalidDicomError
 
     try:
-        return pydicom.dcmread(path, stop_before_pixels=True)
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
     except InvalidDicomError:
-        pass
-    except (OSError, EOFError, ValueError, KeyError, TypeError):
+        ds = None
+    except DICOM_PARSE_ERRORS as exc:
+        if _has_dicom_marker(path):
+            raise InputFileError(f"{path}: damaged DICOM file ({describe(exc, 80)}); "
+                                 "copy it again or remove it from the folder") from None
         return None
+    if ds is None:
+        ds = _read_header_without_preamble(path, pydicom)
+        if ds is None:
+            return None
+    parse_all_elements(ds, path)
+    return ds
+
+
+def _read_header_without_preamble(path: Path, pydicom):
+    """A DICOM file without the 128-byte preamble (only tried for DICOM-like suffixes), or None."""
     if path.suffix.lower() not in ("", ".dcm", ".dicom", ".ima"):
         return None
-    try:  # DICOM without the 128-byte preamble
+    try:
         ds = pydicom.dcmread(path, stop_before_pixels=True, force=True)
         return ds if "SOPClassUID" in ds else None
     except Exception:  # noqa: BLE001 - forced parsing of a non-DICOM file fails in many ways
@@ -504,11 +578,22 @@ def _check_ct(series: list, folder: Path) -> None:
 
 
 def _required(ds, keyword: str, path: Path, count: int):
-    value = ds.get(keyword)
-    if value is None or len(value) != count:
+    try:
+        value = dicom_numbers(ds.get(keyword), count, keyword, path)
+    except InputFileError:
+        value = None
+    if value is None:
         raise InputFileError(f"{path}: DICOM slice lacks a valid {keyword}; the series cannot be placed in "
                              "space (export it again from the scanner or PACS)")
-    return np.array([float(x) for x in value])
+    return value
+
+
+def _columns_rows(ds, path: Path) -> tuple[int, int]:
+    cols, rows = dicom_int(ds, "Columns", 0, path), dicom_int(ds, "Rows", 0, path)
+    if cols < 1 or rows < 1:
+        raise InputFileError(f"{path}: DICOM slice has no valid Rows/Columns ({rows} x {cols}); the file is "
+                             "damaged")
+    return cols, rows
 
 
 def _slice_geometry(series: list, folder: Path) -> tuple[list, np.ndarray, str]:
@@ -519,6 +604,13 @@ def _slice_geometry(series: list, folder: Path) -> tuple[list, np.ndarray, str]:
     iop = _required(first, "ImageOrientationPatient", first_path, 6)
     spacing_rc = _required(first, "PixelSpacing", first_path, 2)
     row_dir, col_dir = iop[:3], iop[3:]
+    if (abs(np.linalg.norm(row_dir) - 1) > 1e-2 or abs(np.linalg.norm(col_dir) - 1) > 1e-2
+            or abs(row_dir @ col_dir) > 1e-2):
+        raise InputFileError(f"{first_path}: ImageOrientationPatient {iop.tolist()} is not two orthogonal "
+                             "unit vectors; the slice cannot be placed in space (export the series again)")
+    if np.any(spacing_rc <= 0):
+        raise InputFileError(f"{first_path}: PixelSpacing {spacing_rc.tolist()} mm is not positive; the "
+                             "header is damaged")
     normal = np.cross(row_dir, col_dir)
     for path, ds in series:
         _check_same_plane(ds, path, iop, spacing_rc, first)
@@ -541,7 +633,7 @@ def _check_same_plane(ds, path: Path, iop: np.ndarray, spacing_rc: np.ndarray, f
                              "mixes reconstructions, give one series")
     if np.max(np.abs(_required(ds, "PixelSpacing", path, 2) - spacing_rc)) > 1e-4:
         raise InputFileError(f"{path}: pixel spacing differs from the rest of the series; give one series")
-    if (ds.get("Rows"), ds.get("Columns")) != (first.get("Rows"), first.get("Columns")):
+    if _columns_rows(ds, path) != _columns_rows(first, path):
         raise InputFileError(f"{path}: slice size differs from the rest of the series; give one series")
 
 
@@ -576,13 +668,15 @@ def _read_slices(ordered: list, stored_pixels) -> np.ndarray:
     ordered: [(key, header)] in slice order; stored_pixels(key) -> (rows, columns) stored values.
     """
     first = ordered[0][1]
-    rescale = [(float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
-               for _, ds in ordered]
+    rescale = [_rescale(ds, key) for key, ds in ordered]
     integer = all(s == 1.0 and b == round(b) for s, b in rescale)
-    hu = np.empty((int(first.Columns), int(first.Rows), len(ordered)), np.int16 if integer else np.float32,
-                  order="F")
+    cols, rows = _columns_rows(first, ordered[0][0])
+    hu = np.empty((cols, rows, len(ordered)), np.int16 if integer else np.float32, order="F")
     for k, ((key, _), (slope, intercept)) in enumerate(zip(ordered, rescale, strict=True)):
         stored = stored_pixels(key)
+        if stored.shape != (rows, cols):
+            raise InputFileError(f"{key}: pixel data of shape {stored.shape} does not match Rows x Columns "
+                                 f"{rows} x {cols}; the slice is damaged")
         if integer:
             values = stored.astype(np.int32) + int(intercept)
             if values.min() < -32768 or values.max() > 32767:
@@ -594,6 +688,16 @@ def _read_slices(ordered: list, stored_pixels) -> np.ndarray:
     return hu
 
 
+def _rescale(ds, key) -> tuple[float, float]:
+    """(RescaleSlope, RescaleIntercept), default (1, 0) when absent; a zero slope is refused."""
+    slope = dicom_numbers(ds.get("RescaleSlope"), 1, "RescaleSlope", Path(str(key)))
+    intercept = dicom_numbers(ds.get("RescaleIntercept"), 1, "RescaleIntercept", Path(str(key)))
+    if slope is not None and slope[0] == 0:
+        raise InputFileError(f"{key}: RescaleSlope is 0, so every voxel would have the same HU; the header "
+                             "is damaged (export the series again)")
+    return 1.0 if slope is None else float(slope[0]), 0.0 if intercept is None else float(intercept[0])
+
+
 def _slice_pixels(path: Path) -> np.ndarray:
     import pydicom
 
@@ -601,9 +705,9 @@ def _slice_pixels(path: Path) -> np.ndarray:
         ds = pydicom.dcmread(path)
         pixels = ds.pixel_array
     except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds for bad or undecodable data
-        raise InputFileError(f"{path}: cannot decode this slice's pixel data ({exc.__class__.__name__}: "
-                             f"{str(exc)[:100]}); the file may be truncated or compressed in a format "
-                             "without a decoder (decompress it, e.g. gdcmconv --raw)") from None
+        raise InputFileError(f"{path}: cannot decode this slice's pixel data ({describe(exc, 100)}); the "
+                             "file may be truncated or compressed in a format without a decoder (decompress "
+                             "it, e.g. gdcmconv --raw)") from None
     if pixels.ndim != 2:
         raise InputFileError(f"{path}: slice pixel data has shape {pixels.shape}; expected one grey image")
     return pixels
@@ -621,13 +725,13 @@ def load_enhanced_ct(path: str | Path) -> Volume:
     _check_ct([(path, header)], path)
     frames = _frame_headers(header, path)
     ordered, affine, spacing_note = _slice_geometry(frames, path)
-    check_memory((int(header.Columns), int(header.Rows), len(ordered)), 2 + 4, path)
+    check_memory((*_columns_rows(header, path), len(ordered)), 2 + 4, path)
     stack = _decoded_frames(path, len(frames))
     hu = _read_slices(ordered, lambda frame: stack[frame])
     meta = {"format": "DICOM enhanced", "series_uid": str(header.get("SeriesInstanceUID", "")),
             "series_description": str(header.get("SeriesDescription", "")), "n_slices": len(ordered),
             "slice_spacing": spacing_note}
-    return Volume(hu, affine, str(path), meta)
+    return _checked_volume(hu, affine, path, meta)
 
 
 _FRAME_FIELDS = (("ImagePositionPatient", "PlanePositionSequence"),
@@ -643,7 +747,7 @@ def _frame_headers(ds, path: Path) -> list:
 
     per_frame = ds.get("PerFrameFunctionalGroupsSequence") or []
     shared = (ds.get("SharedFunctionalGroupsSequence") or [Dataset()])[0]
-    if len(per_frame) != int(ds.NumberOfFrames):
+    if len(per_frame) != dicom_int(ds, "NumberOfFrames", 1, path):
         raise InputFileError(f"{path}: multi-frame DICOM without one functional group per frame; export the "
                              "CT as a classic series or convert it to NIfTI (e.g. with dcm2niix)")
     frames = []
@@ -667,9 +771,8 @@ def _decoded_frames(path: Path, n_frames: int) -> np.ndarray:
     try:
         stack = pydicom.dcmread(path).pixel_array
     except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds for bad or undecodable data
-        raise InputFileError(f"{path}: cannot decode the pixel data ({exc.__class__.__name__}: "
-                             f"{str(exc)[:100]}); the file may be truncated or compressed without a "
-                             "decoder") from None
+        raise InputFileError(f"{path}: cannot decode the pixel data ({describe(exc, 100)}); the file may be "
+                             "truncated or compressed without a decoder") from None
     if stack.ndim != 3 or stack.shape[0] != n_frames:
         raise InputFileError(f"{path}: pixel data of shape {stack.shape} does not hold {n_frames} grey "
                              "frames")

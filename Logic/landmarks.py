@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import re
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,6 +28,7 @@ import numpy as np
 
 from .atomic import atomic_write_json
 from .errors import InputFileError, LandmarkError
+from .xray import describe
 
 LEVEL_NAMES = ([f"C{i}" for i in range(1, 8)] + [f"T{i}" for i in range(1, 14)]
                + [f"L{i}" for i in range(1, 7)] + ["S1"])
@@ -77,7 +79,7 @@ class Landmarks3D:
 
     def __post_init__(self) -> None:
         self.points_lps_mm = np.asarray(self.points_lps_mm, dtype=np.float64).reshape(-1, 3)
-        self.labels = [normalize_level_name(lb) for lb in self.labels]
+        self.labels = _normalized(self.labels, self.source, unnamed_ok=False)
         _check_points(self.labels, self.points_lps_mm, self.source)
 
     def as_dict(self) -> dict[str, np.ndarray]:
@@ -99,7 +101,7 @@ class Landmarks2D:
 
     def __post_init__(self) -> None:
         self.uv_px = np.asarray(self.uv_px, dtype=np.float64).reshape(-1, 2)
-        self.labels = [None if lb in (None, "") else normalize_level_name(lb) for lb in self.labels]
+        self.labels = _normalized(self.labels, self.source, unnamed_ok=True)
         _check_points([lb for lb in self.labels if lb], self.uv_px, self.source)
 
     @property
@@ -110,15 +112,84 @@ class Landmarks2D:
         return {lb: p for lb, p in zip(self.labels, self.uv_px, strict=True) if lb is not None}
 
 
+def _normalized(labels: list, source: str, unnamed_ok: bool) -> list:
+    """Level names normalised ('t 12' -> 'T12'); None/'' kept as None when ``unnamed_ok``; errors name the
+    file."""
+    out = []
+    for label in labels:
+        if unnamed_ok and (label is None or label == ""):
+            out.append(None)
+            continue
+        try:
+            out.append(normalize_level_name(label))
+        except LandmarkError as exc:
+            raise LandmarkError(f"{source}: {exc}" if source else str(exc)) from None
+    return out
+
+
 def _check_points(labels: list[str], points: np.ndarray, source: str) -> None:
     where = f"{source}: " if source else ""
     if not np.all(np.isfinite(points)):
         raise LandmarkError(f"{where}a landmark position is not a finite number (NaN or infinity); "
                             "place or remove that point")
-    dup = sorted({lb for lb in labels if labels.count(lb) > 1})
+    dup = sorted(lb for lb, n in Counter(labels).items() if n > 1)
     if dup:
         raise LandmarkError(f"{where}level {', '.join(dup)} is labelled more than once; each vertebra "
                             "needs exactly one centroid")
+
+
+LEVEL_SPACING_MM = (8.0, 60.0)
+"""Plausible distance between the centroids of adjacent vertebrae (cervical ~15 mm, lumbar ~35-40 mm)."""
+
+
+def _level_gap(upper: str, lower: str) -> int:
+    """Number of vertebrae from ``upper`` down to ``lower``; the transitional T13 and L6 count only when one
+    of the two is itself transitional (T12 -> L1 is one level)."""
+    usual = [n for n in LEVEL_NAMES if n not in TRANSITIONAL_LEVELS]
+    names = LEVEL_NAMES if {upper, lower} & set(TRANSITIONAL_LEVELS) else usual
+    return names.index(lower) - names.index(upper)
+
+
+def _first_reversal(t: np.ndarray) -> int | None:
+    """Index k of the first step t[k] -> t[k+1] that does not advance (t must increase), or None."""
+    bad = np.flatnonzero(np.diff(np.asarray(t, dtype=float)) <= 0)
+    return int(bad[0]) if bad.size else None
+
+
+def spine_order_warnings(ct: Landmarks3D, xray: Landmarks2D | None = None) -> list[str]:
+    """Plausibility of the labels (warnings, not errors), since adjacent vertebrae never swap places:
+
+    - CT centroids sorted head to sacrum must descend: LPS z (superior) strictly decreases;
+    - and lie 8-60 mm apart per level (catches points in cm or voxels, and misnamed levels);
+    - X-ray points sorted head to sacrum must advance monotonically along the line from the first to the
+      last (any image orientation), i.e. ``(uv_k - uv_first) . (uv_last - uv_first)`` strictly increases.
+    """
+    notes = []
+    ct = ct.sorted()
+    labels, z = ct.labels, ct.points_lps_mm[:, 2]
+    k = _first_reversal(-z) if len(labels) >= 2 else None
+    if k is not None:
+        notes.append(f"CT levels are not in spine order: {labels[k + 1]} (z {z[k + 1]:.1f} mm) is not below "
+                     f"{labels[k]} (z {z[k]:.1f} mm; LPS +z is superior); two labels are probably swapped or "
+                     "misnamed, check them")
+    if len(labels) >= 2:
+        gaps = np.array([_level_gap(a, b) for a, b in zip(labels, labels[1:], strict=False)])
+        per_level = np.linalg.norm(np.diff(ct.points_lps_mm, axis=0), axis=1) / gaps
+        lo, hi = LEVEL_SPACING_MM
+        odd = [f"{a}-{b} {d:.1f} mm" for a, b, d in zip(labels, labels[1:], per_level, strict=False)
+               if not lo <= d <= hi]
+        if odd:
+            notes.append(f"CT centroid spacing per level is implausible ({', '.join(odd)}; expected {lo:.0f}-"
+                         f"{hi:.0f} mm): are the points in mm and LPS, and named after the right vertebrae?")
+    named = sorted(xray.as_dict().items(), key=lambda kv: level_index(kv[0])) if xray is not None else []
+    if len(named) >= 3:
+        uv = np.array([p for _, p in named])
+        k = _first_reversal((uv - uv[0]) @ (uv[-1] - uv[0]))
+        if k is not None:
+            notes.append(f"X-ray levels are not in spine order: {named[k + 1][0]} does not follow "
+                         f"{named[k][0]} along the spine from {named[0][0]} to {named[-1][0]}; two labels "
+                         "are probably swapped or misnamed, check them")
+    return notes
 
 
 @dataclass
@@ -139,10 +210,12 @@ def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs
     only_xray = sorted(set(xr_map) - set(ct_map), key=level_index)
     if only_xray:
         notes.append(f"X-ray levels {', '.join(only_xray)} have no CT centroid and are not used")
+    notes += spine_order_warnings(ct, xray)
     if len(common) < minimum:
+        ct_from, xray_from = (f" ({lm.source})" if lm.source else "" for lm in (ct, xray))
         raise LandmarkError(f"only {len(common)} level(s) ({', '.join(common) or 'none'}) are labelled on "
-                            f"both the CT and the X-ray; label at least {minimum} of the same vertebrae on "
-                            "both")
+                            f"both the CT{ct_from} and the X-ray{xray_from}; label at least {minimum} of the "
+                            "same vertebrae on both")
     for note in notes:
         warnings.warn(note, stacklevel=2)
     return Pairs(common, np.array([ct_map[lb] for lb in common]), np.array([xr_map[lb] for lb in common]),
@@ -157,8 +230,22 @@ def _load_json(path: Path):
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputFileError(f"{path}: not a valid JSON landmark file ({exc.__class__.__name__}: "
-                             f"{str(exc)[:80]})") from None
+        raise InputFileError(f"{path}: not a valid JSON landmark file ({describe(exc, 80)})") from None
+
+
+def _require_level_keys(doc: dict, path: Path, value: str) -> None:
+    """A plain JSON object none of whose keys is a level name is some other JSON file, not landmarks."""
+    def is_level(key) -> bool:
+        try:
+            normalize_level_name(key)
+            return True
+        except LandmarkError:
+            return False
+
+    if doc and not any(is_level(key) for key in doc):
+        keys = ", ".join(repr(k) for k in list(doc)[:4])
+        raise InputFileError(f"{path}: not a landmark file: expected a Slicer .mrk.json, or JSON mapping "
+                             f"level names to {value} such as {{\"T12\": [...]}}; its keys are {keys}")
 
 
 def _control_points(doc, path: Path) -> tuple[list, dict]:
@@ -194,6 +281,7 @@ def read_landmarks_3d(path: str | Path) -> Landmarks3D:
     path = Path(path)
     doc = _load_json(path)
     if isinstance(doc, dict) and "markups" not in doc:
+        _require_level_keys(doc, path, "[x, y, z] LPS mm")
         try:
             return Landmarks3D(list(doc), [np.asarray(v, float).reshape(3) for v in doc.values()], str(path))
         except (TypeError, ValueError):
@@ -202,7 +290,7 @@ def read_landmarks_3d(path: str | Path) -> Landmarks3D:
     points, markup = _control_points(doc, path)
     flip = np.array([-1.0, -1.0, 1.0]) if markup.get("coordinateSystem", "LPS").upper() == "RAS" else 1.0
     labels = [p.get("label", "") for p in points]
-    points_lps_mm = np.array([_position(p, path) * flip for p in points]).reshape(-1, 3)
+    points_lps_mm = np.array([_position(p, path) * flip for p in points], dtype=float).reshape(-1, 3)
     return Landmarks3D(labels, points_lps_mm, str(path))
 
 
@@ -214,28 +302,45 @@ def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | 
         if isinstance(doc, list):
             return Landmarks2D([None] * len(doc), np.asarray(doc, float).reshape(-1, 2), str(path))
         if isinstance(doc, dict) and "markups" not in doc:
+            _require_level_keys(doc, path, "[column, row] px")
             return Landmarks2D(list(doc), np.array([np.asarray(v, float).reshape(2) for v in doc.values()]),
                                str(path))
     except (TypeError, ValueError):
         raise InputFileError(f"{path}: plain JSON X-ray landmarks must be {{\"T12\": [column, row]}} or "
                              "[[column, row], ...]") from None
     points, markup = _control_points(doc, path)
-    spacing = markup.get("carmreg", {}).get("pixel_spacing_mm") or pixel_spacing_mm or (1.0, 1.0)
+    spacing = _markup_spacing(markup, pixel_spacing_mm, path)
+    ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
     uv, labels = [], []
     for p in points:
-        if "uv_px" in p.get("carmreg", {}):
+        extra = p.get("carmreg")
+        if isinstance(extra, dict) and "uv_px" in extra:
             try:
-                uv.append(np.asarray(p["carmreg"]["uv_px"], float).reshape(2))
+                uv.append(np.asarray(extra["uv_px"], float).reshape(2))
             except (TypeError, ValueError):
                 raise InputFileError(f"{path}: control point {p.get('label', '?')!r} has no 2-number "
                                      "carmreg.uv_px") from None
         else:
-            pos = _position(p, path)
-            if markup.get("coordinateSystem", "LPS").upper() == "RAS":
-                pos = pos * np.array([-1.0, -1.0, 1.0])
-            uv.append(pos[:2] / np.asarray(spacing, float))
+            pos = _position(p, path) * (np.array([-1.0, -1.0, 1.0]) if ras else 1.0)
+            uv.append(pos[:2] / np.asarray(spacing))
         labels.append(p.get("label") or None)
-    return Landmarks2D(labels, np.array(uv).reshape(-1, 2), str(path), tuple(spacing))
+    return Landmarks2D(labels, np.array(uv).reshape(-1, 2), str(path), spacing)
+
+
+def _markup_spacing(markup: dict, fallback, path: Path) -> tuple[float, float]:
+    """(du, dv) mm per pixel: the file's ``carmreg.pixel_spacing_mm``, else ``fallback``, else (1, 1)."""
+    extra = markup.get("carmreg")
+    spacing = (extra.get("pixel_spacing_mm") if isinstance(extra, dict) else None) or fallback
+    if spacing is None:
+        return 1.0, 1.0
+    try:
+        du, dv = (float(x) for x in np.asarray(spacing, dtype=float).reshape(2))
+    except (TypeError, ValueError):
+        raise InputFileError(f"{path}: carmreg.pixel_spacing_mm {str(spacing)[:40]} is not two numbers "
+                             "(column, row) mm") from None
+    if not (np.isfinite(du) and np.isfinite(dv) and du > 0 and dv > 0):
+        raise InputFileError(f"{path}: pixel spacing ({du}, {dv}) mm for the X-ray points is not positive")
+    return du, dv
 
 
 # ----------------------------------------------------------------------------------------------- writing

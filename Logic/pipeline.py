@@ -31,6 +31,7 @@ from .errors import CancelledError, LandmarkError, RegistrationError
 from .fine_search import FineParameters, FineResult, fine_search
 from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label
 from .pde import mpde_mm, pde_mm
+from .similarity import METRICS
 from .spatial_search import SpatialResult, spatial_search
 from .volume import MuPyramid, Volume
 from .xray import XrayImage
@@ -44,6 +45,7 @@ class RegistrationParameters:
     """Every choice of the pipeline, with the paper's value where it gives one."""
 
     metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
+    all_metrics: bool = False               # also compute the other six maps (paper Fig. 6; ~7x the time)
     coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
     ty_half_range_mm: float = 50.0          # medio-lateral search +- (paper: 50)
     tz_half_range_mm: float | None = None   # superior-inferior +-; None = cover every labelled CT level
@@ -101,7 +103,7 @@ class RegistrationState:
         if self.fine is not None:
             return self.fine.pose
         if self.depth is not None:
-            return np.array([self.depth.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
+            return np.array([self.depth.tx_mm, self.depth.ty_mm, self.depth.tz_mm, 0, 0, 0], float)
         if self.spatial is not None:
             return np.array([self.database.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
         return np.zeros(6)
@@ -215,7 +217,7 @@ class CarmRegLogic:
         intr = state.geometry.intrinsics.binned(state.coarse_factor)
         ty, tz = self._coarse_grid(state)
         state.database = build_database(level, state.geometry, intr, ty, tz, 0.0, p.cache_dir,
-                                        progress=lambda f: self._report("database", f, "rendering DRRs"))
+                                        progress=lambda f: self._report("database", min(f, 0.999), "rendering DRRs"))
         return {"drrs": int(len(ty) * len(tz)), "from_cache": state.database.from_cache,
                 "detector_px": list(intr.size_px), "key": state.database.key}
 
@@ -223,20 +225,23 @@ class CarmRegLogic:
         xc = bin_image(state.xray_line_integral, state.coarse_factor)
         mc = bin_mask(state.mask, state.coarse_factor)
         rows, cols = state.database.drrs.shape[2:]
-        state.spatial = spatial_search(state.database, xc[:rows, :cols], mc[:rows, :cols],
-                                       state.parameters.metric)
+        p = state.parameters
+        state.spatial = spatial_search(state.database, xc[:rows, :cols], mc[:rows, :cols], p.metric,
+                                       METRICS if p.all_metrics else (p.metric,))
         per_metric = {}
         for name, (ty, tz) in state.spatial.best_by_metric.items():
             pose = np.array([state.database.tx_mm, ty, tz, 0, 0, 0])
             per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": float(
                 mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px))}
-        return {"metric": state.parameters.metric, "per_metric": per_metric}
+        return {"metric": p.metric, "per_metric": per_metric,
+                "seconds_by_metric": dict(state.spatial.seconds_by_metric)}
 
     def _depth(self, state: RegistrationState) -> dict:
         p = state.parameters
         state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
                                    state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm)
-        return {"tx_mm": state.depth.tx_mm, "magnification": state.depth.magnification,
+        return {"tx_mm": state.depth.tx_mm, "ty_mm": state.depth.ty_mm, "tz_mm": state.depth.tz_mm,
+                "magnification": state.depth.magnification,
                 "intervertebral_cost_mm": state.depth.cost_mm}
 
     def _fine(self, state: RegistrationState) -> dict:
@@ -258,6 +263,14 @@ class CarmRegLogic:
         return {"detector_px": list(target.size_px)}
 
     # ------------------------------------------------------------------ result
+    def save_result(self, result: RegistrationResult, out_dir, xray_pixels: np.ndarray | None = None,
+                    clicked: dict | None = None, bone_dark: bool = True) -> dict:
+        """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``)."""
+        from .report import save_result
+
+        pixels = xray_pixels if xray_pixels is not None else result.xray_line_integral
+        return save_result(result, out_dir, pixels, clicked, bone_dark if xray_pixels is not None else False)
+
     def result(self, state: RegistrationState) -> RegistrationResult:
         pose = CarmPose.from_array(state.pose)
         P = state.geometry.projection_matrix(pose)

@@ -90,23 +90,27 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
-def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float) -> np.ndarray:
-    """Blend the DRR's bone (its band-pass detail: 2-px blur minus 25-px blur, positive part) in cyan."""
+def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float, mask: np.ndarray | None) -> np.ndarray:
+    """Blend the DRR's bone (its band-pass detail: 2-px blur minus 25-px blur, positive part) in cyan,
+    inside the X-ray's exposed field ``mask`` when given."""
     from scipy import ndimage
 
     scale = max(drr.shape) / 768.0
     detail = ndimage.gaussian_filter(drr, 2.0 * scale) - ndimage.gaussian_filter(drr, 25.0 * scale)
     alpha = np.clip(detail / max(np.percentile(detail, 99.5), 1e-9), 0, 1)[..., None] * strength
+    if mask is not None:
+        alpha = alpha * mask[..., None]
     return rgb * (1 - alpha) + EDGE_RGB * alpha
 
 
 def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list,
-                  clicked: dict | None = None, edge_strength: float = 0.6) -> Image.Image:
+                  clicked: dict | None = None, edge_strength: float = 0.6,
+                  mask: np.ndarray | None = None) -> Image.Image:
     """RGB overlay: X-ray (as displayed) + DRR bone in cyan + projected, named centroids."""
     gray = to_uint8(np.asarray(xray_pixels, float)).astype(float)
     rgb = np.repeat(gray[..., None], 3, axis=2)
     if drr_line_integral is not None:
-        rgb = _tint_bone(rgb, np.asarray(drr_line_integral, float), edge_strength)
+        rgb = _tint_bone(rgb, np.asarray(drr_line_integral, float), edge_strength, mask)
     img = Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8))
     draw = ImageDraw.Draw(img)
     size = max(img.size)
@@ -198,15 +202,18 @@ def similarity_figure(result) -> bytes:
     return data
 
 
-def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None) -> dict:
+def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
+                bone_dark: bool = True) -> dict:
     """Write every output file; returns {name: path}."""
     from .transform_io import write_tfm
+    from .xray_prep import field_mask
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
-                                                                    result.levels, clicked))}
+                                                                    result.levels, clicked,
+                                                                    mask=field_mask(xray_pixels, bone_dark)))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
         paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,

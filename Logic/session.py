@@ -6,7 +6,8 @@ A session records the inputs and the user's work, never derived data:
   folder, absolute otherwise; both forms are kept and the first that exists wins on reading);
 - ``geometry_overrides``: C-arm values the user set by hand or from a device preset, by field name
   (``sdd_mm``, ``pixel_spacing_mm`` (column, row), ``principal_point_px`` (u, v), ``sod_mm``) plus the
-  ``preset`` name; fields absent here come from the X-ray file or the defaults;
+  ``preset`` key (a file stem in ``Resources/Presets``) and ``preset_fields`` (which fields the preset set);
+  fields absent here come from the X-ray file or the defaults;
 - ``ct_points``: CT centroids, ``[{"label": "T12", "position_lps_mm": [x, y, z]}]`` (LPS mm);
 - ``xray_points``: X-ray centroids, ``[{"label": "T12" | null, "uv_px": [column, row]}]`` (detector px,
   pixel centres at integers);

@@ -26,8 +26,8 @@ The chain (each step exact or a documented model)
 5. Detection: primary ``I = exp(-L)``; scatter and veiling glare ``(1 - g) I + g G_wide * I`` (contrast loss
    g); automatic exposure control scales the field so that the central disc receives ``photons_per_pixel``
    on average; Poisson quantum noise; detector blur (Gaussian); vignetting ``1 - v (r / R)^2``; circular
-   collimation (black outside the Ø field); display ``(counts / reference)^gamma`` with bone dark
-   (fluoroscopy polarity), 16-bit; text burnt into the black corners.
+   collimation (black outside the field); log display with dynamic range compression and edge enhancement
+   (``video_display``), bone dark (fluoroscopy polarity), 16-bit; text burnt into the black corners.
 6. Clicks: a surgeon's centroids of ``n_clicks`` adjacent visible levels, ``uv_true_px`` plus Gaussian noise
    of ``click_sd_mm`` per axis at the detector; optional 3D noise on the CT centroids (``ct_click_sd_mm``).
 
@@ -42,6 +42,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -49,8 +50,15 @@ from .atomic import atomic_write_json
 from .camera import CarmGeometry, CarmIntrinsics, CarmPose, project, rotation_matrix
 from .drr_cpu import render_line_integrals
 from .errors import GeometryError, LandmarkError
-from .landmarks import Landmarks2D, Landmarks3D, level_index, write_landmarks_2d, write_landmarks_3d
-from .vertebrae import CARMREG_VERTEBRAE
+from .landmarks import (
+    Landmarks2D,
+    Landmarks3D,
+    level_index,
+    normalize_level_name,
+    write_landmarks_2d,
+    write_landmarks_3d,
+)
+from .vertebrae import CARMREG_VERTEBRAE, level_ordinals
 from .volume import MuLevel, Volume, hu_to_mu
 
 GROUND_TRUTH_SCHEMA = "carmreg-ground-truth/1"
@@ -75,10 +83,11 @@ class SimulationOptions:
     level_rotation_sd_deg: float = 2.0
     level_rotation_max_deg: float = 5.0
     level_translation_rms_mm: float = 1.0
-    # attenuation
+    # attenuation (thick slices refined linearly first, see ``refine_thick_slices``)
+    refine_thick_slices: bool = True
     mu_water_per_mm: float = 0.02
     soft_tissue_hu: float = 40.0
-    bone_contrast_factor: float = 1.3
+    bone_contrast_factor: float = 1.5
     table_line_integral: float = 0.15
     n_kwires: int = 2
     kwire_diameter_mm: float = 1.6
@@ -93,8 +102,13 @@ class SimulationOptions:
     photons_per_pixel: float = 2000.0
     detector_blur_sigma_mm: float = 0.3
     vignetting: float = 0.2
-    display_gamma: float = 0.6
-    display_mid_grey: float = 0.42
+    display_mode: str = "log"
+    display_mid_grey: float = 0.45
+    display_contrast: float = 0.55
+    edge_enhancement: float = 1.0
+    edge_sigma_mm: float = 3.0
+    range_compression: float = 0.75
+    range_sigma_mm: float = 25.0
     burn_in_text: bool = True
     # landmark clicks
     n_clicks: int = 3
@@ -135,10 +149,11 @@ def default_geometry(volume: Volume, options: SimulationOptions | None = None) -
 # ----------------------------------------------------------------------------------------------- pose
 
 def point_along_spine(centroids: Landmarks3D, level_position: float) -> np.ndarray:
-    """LPS mm of a fractional level position (level_index units) by linear interpolation of the centroids,
-    clamped to the labelled range."""
+    """LPS mm of a fractional position along the spine (``level_ordinals`` units: adjacent levels 1 apart)
+    by linear interpolation of the centroids, clamped to the labelled range."""
     lm = centroids.sorted()
-    idx = np.array([level_index(lb) for lb in lm.labels], float)
+    ordinals = level_ordinals(lm.labels)
+    idx = np.array([ordinals[lb] for lb in lm.labels], float)
     x = float(np.clip(level_position, idx[0], idx[-1]))
     return np.array([np.interp(x, idx, lm.points_lps_mm[:, a]) for a in range(3)])
 
@@ -150,9 +165,9 @@ def random_pose(rng: np.random.Generator, options: SimulationOptions, centroids:
     U(+- lateral_range_mm); depth U(+- depth_range_mm) about the nominal isocentre depth; rotations
     U(+- rotation_range_deg) each. The moved isocentre c + t lies on the principal ray (camera.py)."""
     labels = centroids.sorted().labels
-    level = around_level if around_level is not None else labels[int(rng.integers(len(labels)))]
+    level = normalize_level_name(around_level) if around_level is not None else labels[int(rng.integers(len(labels)))]
     offset = rng.uniform(-1.0, 1.0) * options.level_offset_levels
-    target = point_along_spine(centroids, level_index(level) + offset)
+    target = point_along_spine(centroids, level_ordinals([*labels, level])[level] + offset)
     c = np.asarray(geometry.isocenter_lps_mm, float)
     ty = target[0] - c[0] + rng.uniform(-1.0, 1.0) * options.lateral_range_mm
     tz = target[2] - c[2]
@@ -263,9 +278,16 @@ class IntensifierDistortion:
         x, y = self._twist(x, y, r, -1.0)
         return self._to_px(x * scale, y * scale)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> IntensifierDistortion:
+        """Inverse of ``as_dict`` (e.g. from ground_truth.json)."""
+        return cls(tuple(d["center_px"]), tuple(d["pixel_spacing_mm"]), float(d["field_radius_mm"]),
+                   float(d["pincushion_edge_mm"]), float(d["s_distortion_edge_mm"]))
+
     def as_dict(self) -> dict:
         return {"model": "pincushion r(1 + k r^2) then twist phi_edge (r/R)^2 about center_px, detector mm",
-                "center_px": list(self.center_px), "field_radius_mm": self.field_radius_mm,
+                "center_px": list(self.center_px), "pixel_spacing_mm": list(self.pixel_spacing_mm),
+                "field_radius_mm": self.field_radius_mm,
                 "pincushion_edge_mm": self.pincushion_edge_mm, "s_distortion_edge_mm": self.s_distortion_edge_mm,
                 "k_per_mm2": self.k_per_mm2, "phi_edge_rad": self.phi_edge_rad}
 
@@ -342,46 +364,135 @@ def kwire_path_lengths(wire: Kwire, source_lps_mm: np.ndarray, pixels_lps_mm: np
 
 # ----------------------------------------------------------------------------------------------- rendering
 
-def _detector_grid(geometry: CarmGeometry, pose: CarmPose) -> np.ndarray:
-    """(rows*cols, 3) LPS mm of every pixel centre, row-major."""
+def add_kwire(line: np.ndarray, wire: Kwire, geometry: CarmGeometry, pose: CarmPose, mu_per_mm: float) -> None:
+    """line += mu * (path length of every pixel ray inside the wire), only over the window the wire covers."""
     from .camera import pixel_to_detector_lps
 
-    cols, rows = geometry.intrinsics.size_px
-    vv, uu = np.mgrid[0:rows, 0:cols]
-    return pixel_to_detector_lps(geometry, pose, np.stack([uu.ravel(), vv.ravel()], -1))
+    rows, cols = line.shape
+    uv = project(geometry.projection_matrix(pose), np.array([wire.tip_lps_mm, wire.end_lps_mm]))
+    pad = 3 + wire.diameter_mm * float(np.max(geometry.magnification(pose, wire.end_lps_mm))) / min(
+        geometry.intrinsics.pixel_spacing_mm)
+    u_lo, v_lo = np.maximum(np.floor(uv.min(axis=0) - pad).astype(int), 0)
+    u_hi, v_hi = np.minimum(np.ceil(uv.max(axis=0) + pad).astype(int) + 1, (cols, rows))
+    if u_hi <= u_lo or v_hi <= v_lo:
+        return
+    vv, uu = np.mgrid[v_lo:v_hi, u_lo:u_hi]
+    pixels = pixel_to_detector_lps(geometry, pose, np.stack([uu.ravel(), vv.ravel()], -1))
+    chord = kwire_path_lengths(wire, geometry.source_lps_mm(pose), pixels)
+    line[v_lo:v_hi, u_lo:u_hi] += (mu_per_mm * chord).reshape(vv.shape).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _refine_last_axis(src, f, out):
+    """out[a, b, m] = linear interpolation of src[a, b, :] at x = (m + 0.5) / f - 0.5 (clamped)."""
+    n0, n1, n = src.shape
+    for i in numba.prange(n0):
+        for j in range(n1):
+            for m in range(n * f):
+                x = min(max((m + 0.5) / f - 0.5, 0.0), n - 1.0)
+                k = min(int(x), max(n - 2, 0))
+                w = x - k
+                out[i, j, m] = src[i, j, k] * (1.0 - w) + src[i, j, min(k + 1, n - 1)] * w
+
+
+def refine_thick_slices(values: np.ndarray, ijk_to_lps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Refine every axis more than 1.5 x coarser than the finest one by f = ceil(s / s_min), linearly.
+
+    New voxel n of a refined axis sits at old index x = (n + 0.5) / f - 0.5 (same physical box; clamped at
+    the ends). Linear in ``values``, so refining the parts of a sum equals refining the sum. Removes the
+    stair-steps of thick slices from the simulated image (the patient is continuous, the CT is not).
+    """
+    out, affine = np.asarray(values, np.float32), np.asarray(ijk_to_lps, float).copy()
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    for axis in range(3):
+        f = int(np.ceil(spacing[axis] / spacing.min() - 1e-6))
+        if spacing[axis] <= 1.5 * spacing.min() or f <= 1:
+            continue
+        src = np.ascontiguousarray(np.moveaxis(out, axis, 2))
+        refined = np.empty(src.shape[:2] + (src.shape[2] * f,), np.float32)
+        _refine_last_axis(src, f, refined)
+        out = np.moveaxis(refined, 2, axis)
+        origin_shift = np.zeros(3)
+        origin_shift[axis] = 0.5 / f - 0.5
+        affine[:3, 3] = affine[:3, :3] @ origin_shift + affine[:3, 3]
+        affine[:3, axis] /= f
+    return np.ascontiguousarray(out, dtype=np.float32), affine
+
+
+def _prepared(values: np.ndarray, ijk_to_lps: np.ndarray, refine: bool) -> MuLevel:
+    if refine:
+        return MuLevel(*refine_thick_slices(values, ijk_to_lps), None)
+    return MuLevel(np.ascontiguousarray(values, dtype=np.float32), ijk_to_lps, None)
 
 
 def render_moved_anatomy(mu: np.ndarray, labels: np.ndarray | None, ijk_to_lps: np.ndarray,
                          motions: dict[str, LevelMotion], mu_soft: float, geometry: CarmGeometry,
-                         pose: CarmPose) -> np.ndarray:
-    """Line integrals of the CT with each labelled vertebra moved rigidly (module docstring, step 2)."""
-    if labels is None or not motions:
-        return render_line_integrals(MuLevel(np.ascontiguousarray(mu), ijk_to_lps, None), geometry, pose)
-    present = labels > 0
-    background = np.where(present, np.float32(mu_soft), mu).astype(np.float32)
-    total = render_line_integrals(MuLevel(background, ijk_to_lps, None), geometry, pose)
-    excess = mu - np.float32(mu_soft)
-    boxes = ndimage.find_objects(labels.astype(np.int32, copy=False))
+                         pose: CarmPose, refine: bool = False) -> np.ndarray:
+    """Line integrals of the CT with each labelled vertebra moved rigidly (module docstring, step 2).
+
+    With ``refine`` every part goes through ``refine_thick_slices`` before rendering (exact additivity is
+    kept because the refinement is linear).
+    """
+    values = {v: n for v, n in CARMREG_VERTEBRAE.items() if n in motions}
+    if labels is None or not values:
+        return render_line_integrals(_prepared(mu, ijk_to_lps, refine), geometry, pose)
+    moving = np.isin(labels, list(values))
+    background = np.where(moving, np.float32(mu_soft), mu).astype(np.float32)
+    total = render_line_integrals(_prepared(background, ijk_to_lps, refine), geometry, pose)
+    del background
+    boxes = ndimage.find_objects(np.where(moving, labels, 0).astype(np.int32))
     for value, box in enumerate(boxes, start=1):
-        name = CARMREG_VERTEBRAE.get(value)
-        if box is None or name not in motions:
+        if box is None:
             continue
         sl = tuple(slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, labels.shape,
                                                                                   strict=True))
-        sub = np.where(labels[sl] == value, excess[sl], np.float32(0.0)).astype(np.float32)
+        sub = np.where(labels[sl] == value, mu[sl] - np.float32(mu_soft), np.float32(0.0))
         shift = np.eye(4)
         shift[:3, 3] = [s.start for s in sl]
-        level = MuLevel(np.ascontiguousarray(sub), motions[name].matrix @ ijk_to_lps @ shift, None)
-        total += render_line_integrals(level, geometry, pose)
+        level = _prepared(sub, ijk_to_lps @ shift, refine)
+        level.ijk_to_lps = motions[values[value]].matrix @ level.ijk_to_lps
+        _add_rendered_window(total, level, geometry, pose)
     return total
+
+
+def detector_window(intr: CarmIntrinsics, u_start: int, v_start: int, cols: int, rows: int) -> CarmIntrinsics:
+    """Intrinsics of the sub-image [v_start:v_start+rows, u_start:u_start+cols] of the detector (same rays).
+
+    Built without validation on purpose: the principal point may lie outside a small window.
+    """
+    window = object.__new__(CarmIntrinsics)
+    u0, v0 = intr.principal_point_px
+    for name, value in (("sdd_mm", intr.sdd_mm), ("pixel_spacing_mm", tuple(intr.pixel_spacing_mm)),
+                        ("size_px", (int(cols), int(rows))), ("principal_point_px", (u0 - u_start, v0 - v_start)),
+                        ("sources", {})):
+        object.__setattr__(window, name, value)
+    return window
+
+
+def _add_rendered_window(total: np.ndarray, level: MuLevel, geometry: CarmGeometry, pose: CarmPose) -> None:
+    """total += DRR of ``level``, rendered only over the detector window its grid box projects into."""
+    n = np.array(level.mu_per_mm.shape, float)
+    corners = np.array([[a, b, c] for a in (-0.5, n[0] - 0.5) for b in (-0.5, n[1] - 0.5)
+                        for c in (-0.5, n[2] - 0.5)])
+    uv = project(geometry.projection_matrix(pose), corners @ level.ijk_to_lps[:3, :3].T + level.ijk_to_lps[:3, 3])
+    rows, cols = total.shape
+    u_lo, v_lo = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+    u_hi, v_hi = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 2, (cols, rows))
+    if u_hi <= u_lo or v_hi <= v_lo:
+        return
+    window = detector_window(geometry.intrinsics, u_lo, v_lo, u_hi - u_lo, v_hi - v_lo)
+    total[v_lo:v_hi, u_lo:u_hi] += render_line_integrals(level, geometry, pose, intrinsics=window)
 
 
 def label_centers(labels: np.ndarray, ijk_to_lps: np.ndarray) -> dict[str, np.ndarray]:
     """Centre of mass (LPS mm) of every CarmReg-labelled vertebra present."""
-    values = [v for v in np.unique(labels) if int(v) in CARMREG_VERTEBRAE]
-    com = ndimage.center_of_mass(np.ones(labels.shape, np.uint8), labels, values)
-    return {CARMREG_VERTEBRAE[int(v)]: ijk_to_lps[:3, :3] @ np.asarray(c) + ijk_to_lps[:3, 3]
-            for v, c in zip(values, com, strict=True)}
+    out = {}
+    for value, box in enumerate(ndimage.find_objects(np.asarray(labels).astype(np.int32, copy=False)), start=1):
+        if box is None or value not in CARMREG_VERTEBRAE:
+            continue
+        ijk = np.argwhere(labels[box] == value).mean(axis=0) + [s.start for s in box]
+        out[CARMREG_VERTEBRAE[value]] = ijk_to_lps[:3, :3] @ ijk + ijk_to_lps[:3, 3]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- detection
@@ -393,40 +504,63 @@ def _radius_mm(intr: CarmIntrinsics) -> np.ndarray:
     return np.hypot((uu - (cols - 1) / 2.0) * du, (vv - (rows - 1) / 2.0) * dv)
 
 
-def _wide_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian blur with a large sigma, done on an 8x downsampled copy (scatter is smooth)."""
+def _wide_blur(image: np.ndarray, sigma_px: float, mode: str = "constant") -> np.ndarray:
+    """Gaussian blur with a large sigma (>= 8 px), computed on 8 x 8 block means then upsampled linearly."""
     f = 8
-    small = ndimage.zoom(image, 1.0 / f, order=1)
-    small = ndimage.gaussian_filter(small, sigma_px / f, mode="constant")
-    out = ndimage.zoom(small, np.array(image.shape) / np.array(small.shape), order=1)
-    return out[: image.shape[0], : image.shape[1]].astype(np.float32)
+    rows, cols = image.shape
+    pad = ((0, -rows % f), (0, -cols % f))
+    blocks = np.pad(image, pad, mode="edge").reshape((rows + pad[0][1]) // f, f, (cols + pad[1][1]) // f, f)
+    small = ndimage.gaussian_filter(blocks.mean(axis=(1, 3)), sigma_px / f, mode=mode)
+    # block b covers pixels [b f, b f + f - 1]: its centre is at pixel b f + (f - 1) / 2
+    coords = [(np.arange(n) - (f - 1) / 2.0) / f for n in (rows, cols)]
+    grid = np.meshgrid(*coords, indexing="ij")
+    return ndimage.map_coordinates(small, grid, order=1, mode="nearest").astype(np.float32)
 
 
 def detect(line_integrals: np.ndarray, intr: CarmIntrinsics, options: SimulationOptions,
            rng: np.random.Generator) -> tuple[np.ndarray, dict]:
-    """Distorted line integrals -> display pixels (float, 0..1, bone dark) and the exposure facts."""
+    """Distorted line integrals -> display values (float, 0..1, bone dark) and the exposure facts."""
     du = float(np.mean(intr.pixel_spacing_mm))
     r = _radius_mm(intr)
     radius = options.field_diameter_mm / 2.0
-    field = np.clip((radius - r) / 0.75 + 0.5, 0.0, 1.0).astype(np.float32)  # ~1.5 mm soft collimator edge
+    field = np.clip((radius - r) / 0.75 + 0.5, 0.0, 1.0)  # ~1.5 mm soft collimator edge
     primary = np.exp(-line_integrals.astype(np.float64)) * field
     g = options.scatter_fraction
     signal = primary if g <= 0 else (1.0 - g) * primary + g * _wide_blur(primary, options.scatter_sigma_mm / du)
     central = r < 0.3 * radius
-    n0 = options.photons_per_pixel / max(float(signal[central].mean()), 1e-12) if options.photons_per_pixel > 0 \
-        else 1.0 / max(float(signal[central].mean()), 1e-12)
+    n0 = max(options.photons_per_pixel, 1.0) / max(float(signal[central].mean()), 1e-300)
     counts = signal * n0
     if options.photons_per_pixel > 0:
         counts = rng.poisson(counts).astype(np.float64)
     if options.detector_blur_sigma_mm > 0:
         counts = ndimage.gaussian_filter(counts, options.detector_blur_sigma_mm / du)
     counts *= 1.0 - options.vignetting * np.clip(r / radius, 0.0, 1.0) ** 2
-    reference = float(np.mean(counts[central])) if options.photons_per_pixel <= 0 else options.photons_per_pixel
-    display = options.display_mid_grey * (np.clip(counts, 0.0, None) / reference) ** options.display_gamma
-    display *= field
-    facts = {"n0_photons_unattenuated": float(n0), "reference_counts": reference,
-             "mean_counts_central": float(np.mean(counts[central]))}
-    return np.clip(display, 0.0, 1.0), facts
+    display = video_display(counts / max(options.photons_per_pixel, 1.0), field, central, du, options)
+    facts = {"n0_photons_unattenuated": float(n0), "mean_counts_central": float(np.mean(counts[central])),
+             "display_mode": options.display_mode}
+    return display, facts
+
+
+def video_display(relative: np.ndarray, field: np.ndarray, central: np.ndarray, du_mm: float,
+                  options: SimulationOptions) -> np.ndarray:
+    """Detected signal (1 = the AEC target) -> display value 0..1, bone dark.
+
+    linear: ``mid * relative`` (for tests). log (the usual II-TV chain with its image processing):
+    ``y = log(relative)``; dynamic range compression ``y - b G_wide * y`` (b = range_compression); edge
+    enhancement ``y + a (y - G_edge * y)``; then ``mid + contrast * (y - median of the AEC disc)`` (the AEC
+    region at mid grey; lungs may saturate white as in real thoracic fluoroscopy).
+    """
+    mid = options.display_mid_grey
+    if options.display_mode == "linear":
+        return np.clip(mid * relative * field, 0.0, 1.0)
+    y = np.log(np.clip(relative, 1e-4, None))
+    y = np.where(field > 0.5, y, float(np.median(y[central])))  # no collimator edge ringing
+    if options.range_compression > 0:
+        y = y - options.range_compression * _wide_blur(y, options.range_sigma_mm / du_mm, "nearest")
+    if options.edge_enhancement > 0:
+        y = y + options.edge_enhancement * (y - ndimage.gaussian_filter(y, options.edge_sigma_mm / du_mm))
+    y -= float(np.median(y[central]))
+    return np.clip(mid + options.display_contrast * y, 0.0, 1.0) * field
 
 
 def burn_in_text(pixels: np.ndarray, lines: dict[str, list[str]], value: int) -> np.ndarray:
@@ -450,8 +584,13 @@ def burn_in_text(pixels: np.ndarray, lines: dict[str, list[str]], value: int) ->
     return pixels
 
 
+def tube_kv(bone_contrast_factor: float) -> float:
+    """Tube voltage matching a bone contrast factor (x1.7 at 60 kV, x1 at 90 kV, x0.76 at 120 kV; linear)."""
+    return float(np.interp(bone_contrast_factor, [0.76, 1.0, 1.7], [120.0, 90.0, 60.0]))
+
+
 def _text_lines(options: SimulationOptions, seed: int) -> dict[str, list[str]]:
-    kv = float(np.interp(options.bone_contrast_factor, [0.76, 1.0, 1.7], [120.0, 90.0, 60.0]))
+    kv = tube_kv(options.bone_contrast_factor)
     return {"tl": ["CARMREG SIMULATION", f"SEED {seed}"],
             "tr": [f"{kv:.0f} kV  {1.0 + 2.0 * min(options.photons_per_pixel / 1e4, 1.0):.1f} mA", "PULSED 8 p/s"],
             "bl": ["AP", "NOT FOR DIAGNOSIS"],
@@ -542,13 +681,65 @@ def choose_click_levels(names: list[str], uv_true: dict[str, np.ndarray], visibl
                         center_px: np.ndarray, n: int) -> list[str]:
     """The run of ``n`` adjacent visible levels whose mean position is nearest the image centre."""
     ordered = sorted(names, key=level_index)
+    ordinal = level_ordinals(ordered)
     runs = [ordered[i:i + n] for i in range(len(ordered) - n + 1)
             if all(visible[lb] for lb in ordered[i:i + n])
-            and level_index(ordered[i + n - 1]) - level_index(ordered[i]) == n - 1]
+            and ordinal[ordered[i + n - 1]] - ordinal[ordered[i]] == n - 1]
     if not runs:
         raise LandmarkError(f"fewer than {n} adjacent vertebrae are visible in the simulated image; "
                             "aim the C-arm at the labelled spine (another pose or seed)")
     return min(runs, key=lambda run: np.linalg.norm(np.mean([uv_true[lb] for lb in run], 0) - center_px))
+
+
+def attenuation(hu: np.ndarray, options: SimulationOptions) -> tuple[np.ndarray, float]:
+    """(mu' per mm at the simulated tube voltage, mu of soft tissue): module docstring, step 1."""
+    mu_w = options.mu_water_per_mm
+    mu = hu_to_mu(hu, mu_w)
+    if options.bone_contrast_factor != 1.0:
+        mu = mu + np.float32(options.bone_contrast_factor - 1.0) * np.maximum(mu - np.float32(mu_w), 0)
+    return mu, float(mu_w * (1000.0 + options.soft_tissue_hu) / 1000.0)
+
+
+def motion_centers(labels: np.ndarray | None, ijk_to_lps: np.ndarray, centroids: Landmarks3D) -> dict:
+    """Centre of each labelled vertebra's motion: its CT centroid when given, else its centre of mass."""
+    if labels is None:
+        return {}
+    centers = label_centers(labels, ijk_to_lps)
+    centers.update({k: v for k, v in centroids.as_dict().items() if k in centers})
+    return centers
+
+
+def add_devices(line: np.ndarray, rng: np.random.Generator, geometry: CarmGeometry, pose: CarmPose,
+                uv_ideal: dict[str, np.ndarray], centroids: Landmarks3D, motions: dict[str, LevelMotion],
+                options: SimulationOptions) -> list[Kwire]:
+    """Table and K-wires (in the levels nearest the image centre) added to the line integrals, in place."""
+    cols, rows = geometry.intrinsics.size_px
+    nearest = sorted(uv_ideal, key=lambda lb: np.linalg.norm(uv_ideal[lb] - ((cols - 1) / 2.0, (rows - 1) / 2.0)))
+    wires = plan_kwires(rng, nearest, centroids.as_dict(), motions, options) if options.n_kwires > 0 else []
+    line += np.float32(options.table_line_integral)
+    for wire in wires:
+        add_kwire(line, wire, geometry, pose, options.kwire_mu_per_mm)
+    return wires
+
+
+def surgeon_clicks(rng: np.random.Generator, uv_true: dict[str, np.ndarray], visible: dict[str, bool],
+                   intr: CarmIntrinsics, options: SimulationOptions) -> Landmarks2D:
+    """``click_levels`` (or the adjacent visible run nearest the centre) at uv_true + N(0, click_sd_mm)."""
+    names = sorted(uv_true, key=level_index)
+    center_px = (np.asarray(intr.size_px, float) - 1.0) / 2.0
+    if options.click_levels:
+        chosen = list(options.click_levels)
+    elif options.n_clicks > 0:
+        chosen = choose_click_levels(names, uv_true, visible, center_px, options.n_clicks)
+    else:
+        chosen = []
+    missing = [lb for lb in chosen if lb not in uv_true]
+    if missing:
+        raise LandmarkError(f"click level(s) {', '.join(missing)} have no CT centroid; choose among "
+                            f"{', '.join(names)}")
+    sd_px = options.click_sd_mm / np.asarray(intr.pixel_spacing_mm, float)
+    uv = np.array([uv_true[lb] + rng.normal(0.0, 1.0, 2) * sd_px for lb in chosen]).reshape(-1, 2)
+    return Landmarks2D(chosen, uv, "simulation", tuple(intr.pixel_spacing_mm))
 
 
 def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids: Landmarks3D,
@@ -559,49 +750,29 @@ def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids:
     vertebra_labels: label map on the CT grid with CarmReg values (1 + LEVEL_NAMES.index; see
         ``Logic.vertebrae.to_carmreg_labels``), or None for no per-level motion.
     centroids: true CT centroids (LPS mm) of the levels to report (e.g. ``centroids_from_labels``).
-    Deterministic for a given seed.
+    Deterministic for a given seed (random draws in order: motions, K-wires, noise, clicks, 3D noise).
     """
     options = options or SimulationOptions()
     _check_inputs(volume, vertebra_labels, centroids)
     rng = np.random.default_rng(seed)
-    timings, t0 = {}, time.perf_counter()
-    intr = geometry.intrinsics
-    mu_w = options.mu_water_per_mm
-    mu = hu_to_mu(volume.hu, mu_w)
-    if options.bone_contrast_factor != 1.0:
-        mu = mu + np.float32(options.bone_contrast_factor - 1.0) * np.maximum(mu - np.float32(mu_w), 0)
-    mu_soft = float(mu_w * (1000.0 + options.soft_tissue_hu) / 1000.0)
-    true_points = centroids.as_dict()
-    centers = label_centers(vertebra_labels, volume.ijk_to_lps) if vertebra_labels is not None else {}
-    centers.update({k: v for k, v in true_points.items() if k in centers})
-    motions = draw_level_motions(rng, centers, options)
-    timings["prepare_s"] = time.perf_counter() - t0
-
+    intr, centroids = geometry.intrinsics, centroids.sorted()
+    t0 = time.perf_counter()
+    mu, mu_soft = attenuation(volume.hu, options)
+    motions = draw_level_motions(rng, motion_centers(vertebra_labels, volume.ijk_to_lps, centroids), options)
     t1 = time.perf_counter()
-    line = render_moved_anatomy(mu, vertebra_labels, volume.ijk_to_lps, motions, mu_soft, geometry, pose)
-    timings["render_s"] = time.perf_counter() - t1
+    line = render_moved_anatomy(mu, vertebra_labels, volume.ijk_to_lps, motions, mu_soft, geometry, pose,
+                                options.refine_thick_slices)
+    del mu
+    t2 = time.perf_counter()
 
     P = geometry.projection_matrix(pose)
-    names = centroids.sorted().labels
-    uv_projected = {lb: project(P, true_points[lb][None])[0] for lb in names}
-    moved = {lb: motions[lb].apply(true_points[lb]) if lb in motions else true_points[lb] for lb in names}
-    uv_ideal = {lb: project(P, moved[lb][None])[0] for lb in names}
-
-    t2 = time.perf_counter()
-    cols, rows = intr.size_px
-    center_px = ((cols - 1) / 2.0, (rows - 1) / 2.0)
-    distortion = IntensifierDistortion(center_px, tuple(intr.pixel_spacing_mm), options.field_diameter_mm / 2.0,
+    points = centroids.as_dict()
+    uv_projected = {lb: project(P, c[None])[0] for lb, c in points.items()}
+    uv_ideal = {lb: project(P, (motions[lb].apply(c) if lb in motions else c)[None])[0] for lb, c in points.items()}
+    wires = add_devices(line, rng, geometry, pose, uv_ideal, centroids, motions, options)
+    distortion = IntensifierDistortion(tuple((np.asarray(intr.size_px, float) - 1.0) / 2.0),
+                                       tuple(intr.pixel_spacing_mm), options.field_diameter_mm / 2.0,
                                        options.pincushion_edge_mm, options.s_distortion_edge_mm)
-    mid = sorted(names, key=lambda lb: np.linalg.norm(uv_ideal[lb] - center_px))
-    wires = plan_kwires(rng, mid, true_points, motions, options) if options.n_kwires > 0 else []
-    if wires or options.table_line_integral > 0:
-        line = line + np.float32(options.table_line_integral)
-        if wires:
-            pixels_lps = _detector_grid(geometry, pose)
-            source = geometry.source_lps_mm(pose)
-            for wire in wires:
-                line += (options.kwire_mu_per_mm * kwire_path_lengths(wire, source, pixels_lps)).reshape(
-                    rows, cols).astype(np.float32)
     seen = line
     if options.pincushion_edge_mm or options.s_distortion_edge_mm:
         seen = resample_distorted(line, distortion)
@@ -609,27 +780,18 @@ def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids:
     pixels = np.round(display * 65535.0).astype(np.uint16)
     if options.burn_in_text:
         burn_in_text(pixels, _text_lines(options, seed), 60000)
-    timings["detect_s"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
 
-    uv_true = {lb: distortion.distort(uv_ideal[lb]) for lb in names}
-    du = float(np.mean(intr.pixel_spacing_mm))
-    limit_px = (options.field_diameter_mm / 2.0 - options.visibility_margin_mm) / du
-    visible = {lb: bool(np.linalg.norm(uv_true[lb] - center_px) < limit_px) for lb in names}
-    click_names = list(options.click_levels) if options.click_levels else choose_click_levels(
-        names, uv_true, visible, np.array(center_px), options.n_clicks)
-    missing = [lb for lb in click_names if lb not in uv_true]
-    if missing:
-        raise LandmarkError(f"click level(s) {', '.join(missing)} have no CT centroid; choose among "
-                            f"{', '.join(names)}")
-    sd_px = np.array(options.click_sd_mm) / np.asarray(intr.pixel_spacing_mm)
-    clicks = Landmarks2D(click_names, np.array([uv_true[lb] + rng.normal(0.0, 1.0, 2) * sd_px
-                                                for lb in click_names]), "simulation",
-                         tuple(intr.pixel_spacing_mm))
-    ct_points = centroids.sorted().points_lps_mm + rng.normal(0.0, options.ct_click_sd_mm, (len(names), 3))
-    facts.update({"timing_s": {k: round(v, 3) for k, v in timings.items()}})
-    return SimulatedXray(pixels, geometry, pose, distortion, motions, centroids.sorted(),
-                         Landmarks3D(names, ct_points, "simulation"), uv_projected, uv_true, visible, clicks,
-                         wires, options, int(seed), facts, line)
+    uv_true = {lb: distortion.distort(uv) for lb, uv in uv_ideal.items()}
+    limit_px = (options.field_diameter_mm / 2.0 - options.visibility_margin_mm) / float(np.mean(intr.pixel_spacing_mm))
+    visible = {lb: bool(np.linalg.norm(uv - distortion.center_px) < limit_px) for lb, uv in uv_true.items()}
+    clicks = surgeon_clicks(rng, uv_true, visible, intr, options)
+    ct_points = centroids.points_lps_mm + rng.normal(0.0, options.ct_click_sd_mm, centroids.points_lps_mm.shape)
+    facts["timing_s"] = {"prepare_s": round(t1 - t0, 3), "render_s": round(t2 - t1, 3),
+                         "detect_s": round(t3 - t2, 3)}
+    return SimulatedXray(pixels, geometry, pose, distortion, motions, centroids,
+                         Landmarks3D(centroids.labels, ct_points, "simulation"), uv_projected, uv_true, visible,
+                         clicks, wires, options, int(seed), facts, line)
 
 
 def write_simulated_case(out_dir: str | Path, sim: SimulatedXray) -> dict[str, Path]:

@@ -25,12 +25,13 @@ class SpatialResult:
     tz_mm: float
     maps: dict = field(default_factory=dict)          # metric -> (ny, nz) similarity
     best_by_metric: dict = field(default_factory=dict)  # metric -> (ty_mm, tz_mm)
+    seconds_by_metric: dict = field(default_factory=dict)
     seconds: float = 0.0
 
 
 def spatial_search(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarray, metric: str = "gc",
                    metrics: tuple[str, ...] = METRICS) -> SpatialResult:
-    """Score all DRRs with each metric; return the best (ty, tz) of ``metric`` and every map."""
+    """Score all DRRs with ``metric`` and each of ``metrics``; the best (ty, tz) of ``metric`` and every map."""
     start = time.perf_counter()
     ny, nz, rows, cols = db.drrs.shape
     if xray_coarse.shape != (rows, cols):
@@ -38,7 +39,9 @@ def spatial_search(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.nda
     flat = db.drrs.reshape(ny * nz, rows, cols)
     result = SpatialResult(metric, 0.0, 0.0)
     for name in dict.fromkeys((metric, *metrics)):
+        t0 = time.perf_counter()
         scores = similarity(name, xray_coarse, flat, mask_coarse).reshape(ny, nz)
+        result.seconds_by_metric[name] = time.perf_counter() - t0
         iy, iz = np.unravel_index(int(np.argmax(scores)), scores.shape)
         result.maps[name] = scores
         result.best_by_metric[name] = (float(db.ty_mm[iy]), float(db.tz_mm[iz]))

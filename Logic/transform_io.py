@@ -94,7 +94,18 @@ def read_tfm(path: str | Path) -> np.ndarray:
         if name.startswith("CompositeTransform"):
             continue
         result = result @ _to_matrix(name, params, fixed, path)
+    _check_matrix(result, path)
     return result
+
+
+def _check_matrix(m: np.ndarray, path: Path) -> None:
+    """Refuse a transform that cannot place anything: non-finite entries or a singular 3x3 part."""
+    if not np.all(np.isfinite(m)):
+        raise InputFileError(f"{path}: the transform holds NaN or infinite parameters; save it again")
+    det = float(np.linalg.det(m[:3, :3]))
+    if not abs(det) > 1e-9:
+        raise InputFileError(f"{path}: the transform is singular (determinant {det:.3g}): it flattens space "
+                             "and cannot be a pose; save the right transform")
 
 
 def _parse_blocks(text: str, path: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -154,7 +165,11 @@ def _euler_zxy(angles_rad: np.ndarray, zyx: bool = False) -> np.ndarray:
 
 
 def _versor(v: np.ndarray) -> np.ndarray:
-    """Rotation of the unit quaternion with vector part v (w = sqrt(1 - |v|^2))."""
+    """Rotation of the unit quaternion with vector part v (w = sqrt(1 - |v|^2)); like ITK, a v of norm >= 1
+    is scaled to a unit vector (w = 0, a half turn)."""
+    norm = float(np.linalg.norm(v))
+    if norm >= 1.0:
+        v = v / norm
     x, y, z = v
     w = np.sqrt(max(0.0, 1.0 - float(v @ v)))
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

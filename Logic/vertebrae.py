@@ -51,6 +51,20 @@ CARMREG_VERTEBRAE: dict[int, str] = {carmreg_label_value(n): n for n in LEVEL_NA
 """CarmReg label value -> level name (1 C1 ... 27 S1)."""
 
 
+TRANSITIONAL_LEVELS = ("T13", "L6")
+"""Levels most spines do not have; they count as a level only when a patient's labels include them."""
+
+
+def level_ordinals(names) -> dict[str, int]:
+    """Position of each level along this spine, counting T13 and L6 only if they are among ``names``.
+
+    Adjacent vertebrae differ by exactly 1 (T12 -> L1 is 1 unless T13 is present), unlike ``level_index``.
+    """
+    present = {normalize_level_name(n) for n in names}
+    sequence = [n for n in LEVEL_NAMES if n not in TRANSITIONAL_LEVELS or n in present]
+    return {n: sequence.index(n) for n in present}
+
+
 def superior_axis(ijk_to_lps: np.ndarray) -> int:
     """Index axis (0, 1 or 2) whose direction is closest to LPS z (superior-inferior): the 'slice' axis."""
     directions = np.asarray(ijk_to_lps, float)[:3, :3]

@@ -43,6 +43,7 @@ grey PNG. Both are atomic.
 from __future__ import annotations
 
 import datetime as _dt
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,10 @@ PRIVATE_GROUP = 0x0029
 PRIVATE_CREATOR = "CarmReg"
 PRIVATE_PRINCIPAL_POINT = 0x01  # (0029,xx01) DS: u0 \ v0 in px (column, row)
 DEFAULT_BONE_DARK = {"XA": True, "RF": True, "DX": False, "CR": False}
+MAX_XRAY_PIXELS = 64 * 1024**2
+"""Largest single X-ray frame accepted (pixels); real detectors are below ~20 Mpx."""
+MAX_XRAY_BYTES = 4 * 1024**3
+"""Largest decoded pixel array accepted (all frames of a DICOM run), bytes."""
 
 
 @dataclass
@@ -105,7 +110,9 @@ class XrayImage:
                            "column,row)")
         what = " and ".join(missing) or "the C-arm geometry"
         verb = "are" if len(missing) > 1 else "is"
-        raise GeometryError(f"{self.source or 'X-ray'}: {what} {verb} not in the file")
+        damaged = self.meta.get("warning_unreadable_elements")
+        note = f" (unreadable header elements were ignored: {damaged})" if damaged else ""
+        raise GeometryError(f"{self.source or 'X-ray'}: {what} {verb} not in the file{note}")
 
 
 # ----------------------------------------------------------------------------------------------- writing
@@ -277,21 +284,61 @@ class _Partial:
     meta: dict = field(default_factory=dict)
 
     def finish(self, path: Path) -> XrayImage:
+        pixels = _checked_pixels(self.pixels, path)
         g = self.geometry
-        rows, cols = self.pixels.shape
+        rows, cols = pixels.shape
         intrinsics = None
         if g.get("sdd_mm") is not None and g.get("pixel_spacing_mm") is not None:
             if g.get("principal_point_px") is None:
                 self.sources["principal_point_px"] = "default (detector centre)"
-            intrinsics = CarmIntrinsics(float(g["sdd_mm"]), tuple(float(x) for x in g["pixel_spacing_mm"]),
-                                        (cols, rows), _optional_pair(g.get("principal_point_px")),
-                                        sources=dict(self.sources))
+            try:
+                spacing = tuple(float(x) for x in g["pixel_spacing_mm"])
+                intrinsics = CarmIntrinsics(float(g["sdd_mm"]), spacing, (cols, rows),
+                                            _optional_pair(g.get("principal_point_px")),
+                                            sources=dict(self.sources))
+            except GeometryError as exc:
+                raise GeometryError(f"{path}: {exc}{self._origin_of(str(exc))}") from None
         sod = g.get("sod_mm")
-        if sod is not None and not (np.isfinite(sod) and sod > 0):
-            raise GeometryError(f"{path}: source-to-patient distance {sod} mm is not positive; give --sod-mm")
-        return XrayImage(np.ascontiguousarray(self.pixels, dtype=np.float32), intrinsics,
-                         None if sod is None else float(sod), self.bone_dark, str(path), self.sources,
-                         self.meta)
+        if sod is not None:
+            self._check_sod(float(sod), None if intrinsics is None else intrinsics.sdd_mm, path)
+        return XrayImage(pixels, intrinsics, None if sod is None else float(sod), self.bone_dark, str(path),
+                         self.sources, self.meta)
+
+    def _origin_of(self, message: str) -> str:
+        """' (value from ...)' for the geometry value a CarmIntrinsics message is about, when not manual."""
+        for prefix, key in (("source-to-detector", "sdd_mm"), ("pixel spacing", "pixel_spacing_mm"),
+                            ("principal point", "principal_point_px")):
+            source = self.sources.get(key)
+            if message.startswith(prefix) and source and source != "manual":
+                return f" (the value was read from {source}; the manual value overrides it)"
+        return ""
+
+    def _check_sod(self, sod_mm: float, sdd_mm: float | None, path: Path) -> None:
+        origin = f" (from {self.sources.get('sod_mm')})" if self.sources.get("sod_mm") != "manual" else ""
+        if not (np.isfinite(sod_mm) and sod_mm > 0):
+            raise GeometryError(f"{path}: source-to-patient distance {sod_mm} mm{origin} is not positive; "
+                                "give --sod-mm (about 0.6 x the source-to-detector distance)")
+        if sdd_mm is not None and sod_mm >= sdd_mm:
+            raise GeometryError(f"{path}: source-to-patient distance {sod_mm:g} mm{origin} is not shorter "
+                                f"than the source-to-detector distance {sdd_mm:g} mm; the patient lies "
+                                "between source and detector, give --sod-mm below --sdd-mm")
+
+
+def _checked_pixels(pixels: np.ndarray, path: Path) -> np.ndarray:
+    """float32 image[row, column]; refuse an empty, non-finite or blank (uniform) image."""
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+    if pixels.ndim != 2 or min(pixels.shape) < 2:
+        raise InputFileError(f"{path}: the image has shape {pixels.shape}; an X-ray is one grey image of at "
+                             "least 2 x 2 px")
+    lo, hi = float(pixels.min()), float(pixels.max())
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        bad = int(np.count_nonzero(~np.isfinite(pixels)))
+        raise InputFileError(f"{path}: {bad} pixel(s) are not finite numbers (NaN or infinity); export the "
+                             "X-ray again as an integer image")
+    if lo == hi:
+        raise InputFileError(f"{path}: the image is blank (every pixel is {lo:g}); give the X-ray frame "
+                             "itself, not an empty or saturated frame")
+    return pixels
 
 
 def _optional_pair(value) -> tuple[float, float] | None:
@@ -301,6 +348,8 @@ def _optional_pair(value) -> tuple[float, float] | None:
 def _select_frame(stack: np.ndarray, frame: int | None, path: Path) -> tuple[np.ndarray, int]:
     """(n, rows, cols[, c]) -> one frame; refuse an ambiguous or out-of-range choice."""
     n = stack.shape[0]
+    if n == 0:
+        raise InputFileError(f"{path}: holds no image frame")
     if frame is None:
         if n > 1:
             raise InputFileError(f"{path}: holds {n} frames; choose one with --frame N (0 to {n - 1}), "
@@ -326,9 +375,10 @@ def _grey_from_channels(pixels: np.ndarray, path: Path, meta: dict) -> np.ndarra
 
 def _read_dicom(path: Path, frame: int | None) -> _Partial:
     ds = _dcmread(path)
+    dropped = drop_unreadable_elements(ds)
     if "SOPClassUID" not in ds and "PixelData" not in ds:
         raise InputFileError(f"{path}: not a DICOM file (nor PNG/TIFF); give the X-ray image")
-    modality = str(ds.get("Modality", "")).upper()
+    modality = str(ds.get("Modality", "") or "").upper()
     if modality and modality not in SOP_CLASS_UIDS and modality not in ("OT", "XC", "RG", "PX", "IO", "MG"):
         raise InputFileError(f"{path}: DICOM modality {modality!r} is not an X-ray image; give an XA, RF, DX "
                              "or CR projection image")
@@ -341,23 +391,114 @@ def _read_dicom(path: Path, frame: int | None) -> _Partial:
     pixels = pixels.astype(np.float32)
     monochrome1 = meta["photometric"].upper() == "MONOCHROME1"
     if monochrome1:
-        pixels = _invert_monochrome1(pixels, ds)
+        pixels = _invert_monochrome1(pixels, ds, path)
         meta["note_inverted"] = "MONOCHROME1: stored values inverted so that larger = brighter"
+    if dropped:
+        meta["warning_unreadable_elements"] = ", ".join(dropped[:6]) + (" ..." if len(dropped) > 6 else "")
     part = _Partial(pixels, True, meta=meta)
     part.bone_dark, part.sources["bone_dark"] = _dicom_bone_dark(ds, modality, monochrome1)
-    _dicom_geometry(ds, part, frame)
+    _dicom_geometry(ds, part, frame, path)
     return part
 
 
 def _dcmread(path: Path):
     import pydicom
-    from pydicom.errors import InvalidDicomError
 
     try:
-        return pydicom.dcmread(path, force=True)
-    except (InvalidDicomError, EOFError, OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputFileError(f"{path}: not a readable DICOM file ({exc.__class__.__name__}: "
-                             f"{str(exc)[:100]})") from None
+        ds = pydicom.dcmread(path, force=True)
+    except DICOM_PARSE_ERRORS as exc:
+        raise InputFileError(f"{path}: not a readable DICOM file ({describe(exc, 100)})") from None
+    return ds
+
+
+def describe(exc: BaseException, limit: int = 100) -> str:
+    """'Kind: message' of a library exception on one line (whitespace collapsed) and at most ``limit``
+    characters of message, for embedding in a one-line CarmRegError."""
+    text = " ".join(str(exc).split())
+    return f"{exc.__class__.__name__}: {text[:limit]}"
+
+
+def _dicom_parse_errors() -> tuple:
+    from pydicom.errors import BytesLengthException, InvalidDicomError
+
+    return (InvalidDicomError, BytesLengthException, struct.error, NotImplementedError, EOFError, OSError,
+            ValueError, KeyError, TypeError, IndexError, OverflowError, UnicodeError, AttributeError)
+
+
+DICOM_PARSE_ERRORS = _dicom_parse_errors()
+"""What pydicom raises on a damaged file (while reading, or when an element is first decoded)."""
+
+
+def drop_unreadable_elements(ds) -> list[str]:
+    """Decode every element now (pydicom decodes lazily) and delete, recursively, those that cannot be
+    decoded (a damaged or non-standard vendor element); returns their '(gggg,eeee) Keyword' names.
+
+    An X-ray stays usable without, say, a broken private tag; a needed value that was dropped is then simply
+    absent (the loader asks for it, naming what was ignored). Pixel data are not decoded.
+    """
+    from pydicom.datadict import keyword_for_tag
+
+    dropped = []
+    for tag in list(ds.keys()):
+        try:
+            element = ds[tag]
+            if element.VR == "SQ":
+                for item in element.value:
+                    dropped += drop_unreadable_elements(item)
+            else:
+                _ = element.value
+        except DICOM_PARSE_ERRORS:
+            keyword = keyword_for_tag(tag)
+            dropped.append(f"({tag.group:04X},{tag.element:04X}){' ' + keyword if keyword else ''}")
+            del ds[tag]
+    return dropped
+
+
+def parse_all_elements(ds, path: Path) -> None:
+    """Decode every element now (pydicom decodes lazily), so a damaged header fails here, named, and not
+    later in the middle of reading the geometry. Pixel data are not decoded."""
+    try:
+        for element in ds.iterall():
+            _ = element.value
+        if getattr(ds, "file_meta", None) is not None:
+            for element in ds.file_meta.iterall():
+                _ = element.value
+    except DICOM_PARSE_ERRORS as exc:
+        raise InputFileError(f"{path}: the DICOM header is damaged ({describe(exc, 100)}); copy or export "
+                             "the file again") from None
+
+
+def dicom_numbers(value, count: int | None, keyword: str, path: Path) -> np.ndarray | None:
+    """A DICOM numeric value (DS/IS/US/FD, single or multi-valued) as float64, or None when absent.
+
+    count: how many numbers are required (None: any number >= 1). A present but malformed value (text that
+    is not a number, wrong multiplicity, NaN) raises InputFileError naming the tag.
+    """
+    if value is None or (isinstance(value, (str, bytes)) and not value.strip()):
+        return None
+    items = [value] if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__") else list(value)
+    try:
+        numbers = np.array([float(x) for x in items], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputFileError(f"{path}: DICOM {keyword} = {str(value)[:40]!r} is not a number; the header is "
+                             "damaged or non-standard (give the value manually, or export the file again)") \
+            from None
+    if (count is not None and numbers.size != count) or numbers.size == 0 or not np.all(np.isfinite(numbers)):
+        want = f"{count} number(s)" if count is not None else "finite numbers"
+        raise InputFileError(f"{path}: DICOM {keyword} = {str(value)[:40]!r} is not {want}; the header is "
+                             "damaged or non-standard (give the value manually, or export the file again)")
+    return numbers
+
+
+def dicom_int(ds, keyword: str, default: int, path: Path) -> int:
+    """An integer attribute (IS/US) with a default when absent or empty."""
+    numbers = dicom_numbers(ds.get(keyword), 1, keyword, path)
+    if numbers is None:
+        return default
+    if numbers[0] != round(numbers[0]) or abs(numbers[0]) > 2**31:
+        raise InputFileError(f"{path}: DICOM {keyword} = {numbers[0]:g} is not a valid integer; the header "
+                             "is damaged")
+    return int(numbers[0])
 
 
 def _dicom_frames(ds, path: Path) -> np.ndarray:
@@ -365,18 +506,21 @@ def _dicom_frames(ds, path: Path) -> np.ndarray:
     if "PixelData" not in ds:
         raise InputFileError(f"{path}: DICOM file has no image (no PixelData); give an image file, not a "
                              "report or DICOMDIR")
+    n_frames = dicom_int(ds, "NumberOfFrames", 1, path)
+    samples = dicom_int(ds, "SamplesPerPixel", 1, path)
+    _check_size(dicom_int(ds, "Columns", 0, path), dicom_int(ds, "Rows", 0, path), path,
+                n_frames=max(n_frames, 1), bytes_per_pixel=max(samples, 1) * max(1, dicom_int(
+                    ds, "BitsAllocated", 16, path) // 8))
     try:
         pixels = ds.pixel_array
     except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds for bad or undecodable data
         syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
         name = getattr(syntax, "name", str(syntax))
         raise InputFileError(f"{path}: cannot decode the DICOM pixel data (transfer syntax {name}; "
-                             f"{exc.__class__.__name__}: {str(exc)[:120]}). If the file is truncated, copy "
+                             f"{describe(exc, 120)}). If the file is truncated, copy "
                              "it again; if compressed, decompress it (e.g. gdcmconv --raw) or install "
                              "pylibjpeg") from None
-    n_frames = int(ds.get("NumberOfFrames", 1) or 1)
-    samples = int(ds.get("SamplesPerPixel", 1) or 1)
-    if n_frames == 1:
+    if n_frames <= 1:
         pixels = pixels[None]
     expected = 3 + (samples > 1)
     if pixels.ndim != expected:
@@ -385,17 +529,17 @@ def _dicom_frames(ds, path: Path) -> np.ndarray:
     return pixels
 
 
-def _invert_monochrome1(pixels: np.ndarray, ds) -> np.ndarray:
+def _invert_monochrome1(pixels: np.ndarray, ds, path: Path) -> np.ndarray:
     """Map the stored range onto itself reversed: unsigned v -> (2^bits - 1) - v, signed v -> -1 - v."""
-    bits = int(ds.get("BitsStored", 16) or 16)
-    if int(ds.get("PixelRepresentation", 0) or 0) == 1:
+    bits = dicom_int(ds, "BitsStored", 16, path)
+    if ds.get("PixelRepresentation", 0) == 1:
         return np.float32(-1.0) - pixels
     return np.float32(2**bits - 1) - pixels
 
 
 def _dicom_bone_dark(ds, modality: str, monochrome1: bool) -> tuple[bool, str]:
     sign = ds.get("PixelIntensityRelationshipSign")
-    if sign in (1, -1):
+    if isinstance(sign, int) and sign in (1, -1):
         dark = (int(sign) == 1) != monochrome1
         return dark, "DICOM (0028,1041) PixelIntensityRelationshipSign" + (" + MONOCHROME1" if monochrome1
                                                                            else "")
@@ -424,43 +568,54 @@ def _find(ds, keyword: str, frame: int):
     return None
 
 
-def _dicom_geometry(ds, part: _Partial, frame: int) -> None:
+def _dicom_geometry(ds, part: _Partial, frame: int, path: Path) -> None:
     """Fill sdd, pixel spacing, sod and principal point from the header; notes into meta."""
     g, src, meta = part.geometry, part.sources, part.meta
-    sdd = _find(ds, "DistanceSourceToDetector", frame)
+    sdd = dicom_numbers(_find(ds, "DistanceSourceToDetector", frame), 1, "DistanceSourceToDetector", path)
     if sdd is not None:
-        g["sdd_mm"], src["sdd_mm"] = float(sdd), "DICOM (0018,1110) DistanceSourceToDetector"
-    sod = _find(ds, "DistanceSourceToPatient", frame)
+        g["sdd_mm"], src["sdd_mm"] = float(sdd[0]), "DICOM (0018,1110) DistanceSourceToDetector"
+    sod = dicom_numbers(_find(ds, "DistanceSourceToPatient", frame), 1, "DistanceSourceToPatient", path)
     if sod is not None:
-        g["sod_mm"], src["sod_mm"] = float(sod), "DICOM (0018,1111) DistanceSourceToPatient"
-    imager = _find(ds, "ImagerPixelSpacing", frame)
-    plain = _find(ds, "PixelSpacing", frame)
-    if imager is not None and len(imager) == 2:
+        g["sod_mm"], src["sod_mm"] = float(sod[0]), "DICOM (0018,1111) DistanceSourceToPatient"
+    imager = dicom_numbers(_find(ds, "ImagerPixelSpacing", frame), 2, "ImagerPixelSpacing", path)
+    plain = dicom_numbers(_find(ds, "PixelSpacing", frame), 2, "PixelSpacing", path)
+    if imager is not None:
         g["pixel_spacing_mm"] = (float(imager[1]), float(imager[0]))  # stored row \ column
         src["pixel_spacing_mm"] = "DICOM (0018,1164) ImagerPixelSpacing"
-    elif plain is not None and len(plain) == 2:
+    elif plain is not None:
         g["pixel_spacing_mm"] = (float(plain[1]), float(plain[0]))
         src["pixel_spacing_mm"] = "DICOM (0028,0030) PixelSpacing (may be calibrated to the patient)"
         meta["warning_pixel_spacing"] = ("pixel spacing taken from PixelSpacing (0028,0030), which may be "
                                          "calibrated to the patient plane; give --pixel-spacing-mm with the "
                                          "detector pixel size if the registration scale looks wrong")
-    _private_principal_point(ds, g, src)
+    _private_principal_point(ds, g, src, path)
     for keyword in ("EstimatedRadiographicMagnificationFactor", "PositionerPrimaryAngle",
                     "PositionerSecondaryAngle", "FieldOfViewHorizontalFlip", "FieldOfViewRotation",
                     "Manufacturer", "ManufacturerModelName", "KVP"):
         value = _find(ds, keyword, frame)
         if value is not None:
-            meta[keyword] = value if isinstance(value, str) else float(value)
+            meta[keyword] = _meta_value(value)
 
 
-def _private_principal_point(ds, g: dict, src: dict) -> None:
+def _meta_value(value):
+    """A header value for ``meta`` (shown, never computed with): text as is, a number as float, else text."""
+    if isinstance(value, str):
+        return value
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return str(value)[:64]
+
+
+def _private_principal_point(ds, g: dict, src: dict, path: Path) -> None:
     try:
         block = ds.private_block(PRIVATE_GROUP, PRIVATE_CREATOR)
         value = block[PRIVATE_PRINCIPAL_POINT].value
-    except KeyError:
+    except (KeyError, ValueError):
         return
-    if value is not None and len(value) == 2:
-        g["principal_point_px"] = (float(value[0]), float(value[1]))
+    numbers = dicom_numbers(value, 2, "CarmReg private principal point (0029,1001)", path)
+    if numbers is not None:
+        g["principal_point_px"] = (float(numbers[0]), float(numbers[1]))
         src["principal_point_px"] = "DICOM private (0029,1001) CarmReg"
 
 
@@ -475,10 +630,16 @@ def _read_raster(path: Path, frame: int | None) -> _Partial:
             n = int(getattr(image, "n_frames", 1))
             _, frame = _select_frame(np.empty((n, 0)), frame, path)
             image.seek(frame)
+            _check_size(*image.size, path)
             mode = image.mode
             pixels = _pil_to_array(image)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise InputFileError(f"{path}: not a readable image ({exc.__class__.__name__}: {str(exc)[:100]}); "
+    except Image.DecompressionBombError:
+        raise InputFileError(f"{path}: the image claims more than {Image.MAX_IMAGE_PIXELS // 10**6} million "
+                             "pixels, far more than an X-ray detector; the file is damaged or not an X-ray") \
+            from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, TypeError, KeyError, IndexError,
+            struct.error, EOFError, ZeroDivisionError, OverflowError, MemoryError) as exc:
+        raise InputFileError(f"{path}: not a readable image ({describe(exc, 100)}); "
                              "the file may be truncated or of another format") from None
     meta = {"format": path.suffix.lower().lstrip("."), "mode": mode, "frame": frame, "n_frames": n}
     if pixels.ndim == 3:
@@ -486,6 +647,20 @@ def _read_raster(path: Path, frame: int | None) -> _Partial:
     part = _Partial(pixels.astype(np.float32), True, meta=meta)
     part.sources["bone_dark"] = "default for PNG/TIFF (C-arm fluoroscopy export: bone dark)"
     return part
+
+
+def _check_size(cols: int, rows: int, path: Path, n_frames: int = 1, bytes_per_pixel: int = 2) -> None:
+    """Refuse, before decoding, an image whose frame or whole pixel array is larger than any C-arm's."""
+    cols, rows, n_frames = int(cols), int(rows), int(n_frames)
+    if cols * rows > MAX_XRAY_PIXELS:
+        raise InputFileError(f"{path}: a frame of {cols} x {rows} px is larger than any X-ray detector "
+                             f"(limit {MAX_XRAY_PIXELS // 1024**2} Mpx); the header is damaged or this is "
+                             "not an X-ray")
+    n_bytes = cols * rows * n_frames * int(bytes_per_pixel)
+    if n_bytes > MAX_XRAY_BYTES:
+        raise InputFileError(f"{path}: {n_frames} frames of {cols} x {rows} px need {n_bytes / 1024**3:.1f} "
+                             f"GiB, more than the {MAX_XRAY_BYTES / 1024**3:.0f} GiB limit; export the frame "
+                             "you want as a single-frame file")
 
 
 def _pil_to_array(image) -> np.ndarray:

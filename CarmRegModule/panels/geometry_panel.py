@@ -166,6 +166,8 @@ class GeometryPanel(QtWidgets.QGroupBox):
             text = str(sources[name])
         elif name == "principal_point_px":
             text = "default: detector centre"
+        elif name == "sod_mm" and getattr(self._xray, "sod_mm", None):
+            text = "from the X-ray"
         elif name == "sod_mm":
             text = "default: 0.6 x SDD"
         else:
@@ -207,7 +209,11 @@ class GeometryPanel(QtWidgets.QGroupBox):
             ov.pop(name, None)
         else:
             ov[name] = list(value) if isinstance(value, (list, tuple)) else float(value)
-        ov["preset_fields"] = [n for n in ov.get("preset_fields", []) if n != name]
+        fields = [n for n in ov.pop("preset_fields", []) if n != name]
+        if fields:
+            ov["preset_fields"] = fields
+        else:
+            ov.pop("preset", None)
         self._emit(ov)
 
     def reset_overrides(self) -> None:

@@ -19,7 +19,9 @@ STAGE_WEIGHTS = {"database": 0.45, "spatial": 0.1, "depth": 0.05, "fine": 0.3, "
 
 
 class ConvergencePlot(QtWidgets.QWidget):
-    """Best mPDE (mm) against cost evaluations of the fine stage (matplotlib, log scale)."""
+    """Best mPDE (mm) against cost evaluations of the fine stage (matplotlib, log scale).
+
+    ``convergence`` entries are (evaluations, best mPDE mm, ...) as the fine stage records them."""
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -37,7 +39,7 @@ class ConvergencePlot(QtWidgets.QWidget):
         self.set_convergence([])
 
     def set_convergence(self, convergence) -> None:
-        self.points = [(float(e), float(m)) for e, m in convergence]
+        self.points = [(float(entry[0]), float(entry[1])) for entry in convergence]
         ax = self.axes
         ax.clear()
         ax.set_facecolor("#1e2023")
@@ -92,6 +94,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.metric_combo.setToolTip("Image similarity for the spatial search (stage 1b): gc gradient "
                                      "correlation, go gradient orientation, ncc, gi, mi, psnr, ssim")
         form.addRow("Similarity metric", self.metric_combo)
+        self.metric_combo.currentTextChanged.connect(lambda _m: self._done and self.reset_requested.emit())
         self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
         self.cache_check.setChecked(True)
         form.addRow("", self.cache_check)
@@ -184,7 +187,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.next_button.setEnabled(ready and not running and nxt is not None)
         self.next_button.setText(f"Run next: {nxt}" if nxt else "All stages done")
         self.cancel_button.setEnabled(running)
-        self.metric_combo.setEnabled(not running and not self._done)
+        self.metric_combo.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 
     def set_progress(self, stage: str, fraction: float, message: str) -> None:

@@ -206,6 +206,8 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self.viewport().update()
 
     def fit(self) -> None:
+        """Show the whole image; the view then keeps fitting on resize until the user zooms or pans."""
+        self._auto_fit = True
         rect = self.image_rect()
         if rect.isEmpty():
             return
@@ -213,7 +215,13 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self.fitInView(rect, QtCore.Qt.AspectRatioMode.KeepAspectRatio)
         self.centerOn(rect.center())
 
+    def resizeEvent(self, event) -> None:
+        super().resizeEvent(event)
+        if getattr(self, "_auto_fit", True) and self._image is not None:
+            self.fit()
+
     def zoom(self, factor: float, anchor: QtCore.QPoint | None = None) -> None:
+        self._auto_fit = False
         old_anchor = self.transformationAnchor()
         if anchor is None:
             self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorViewCenter)
@@ -324,6 +332,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
                 drag["moved"] = True
                 self.store.move_live(drag["id"], position)
         elif drag and drag["kind"] == "pan":
+            self._auto_fit = False
             delta = pos - drag["last"]
             drag["last"] = pos
             self.horizontalScrollBar().setValue(self.horizontalScrollBar().value() - delta.x())

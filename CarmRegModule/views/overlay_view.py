@@ -35,8 +35,11 @@ class OverlayView(ImageCanvas):
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "") -> None:
-        self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark)
-        self._drr01 = (overlay_images.normalise(drr_line_integral) if drr_line_integral is not None
+        from Logic.xray_prep import field_mask
+
+        mask = field_mask(xray_pixels, bone_dark)  # the exposed (collimated) field, as the logic sees it
+        self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
+        self._drr01 = (overlay_images.normalise(drr_line_integral, mask) if drr_line_integral is not None
                        else np.zeros_like(self._xray01))
         self.levels, self.clicks, self.summary = list(levels), dict(clicks), summary
         self._fitted_once = False
@@ -72,6 +75,8 @@ class OverlayView(ImageCanvas):
     def marker_specs(self) -> list[MarkerSpec]:
         specs = []
         for level in self.levels:
+            if not level.get("in_image", True):
+                continue  # listed in the corner text instead
             u, v = level["uv_px"]
             fitted = bool(level.get("fitted"))
             pde = level.get("pde_mm")
@@ -99,7 +104,10 @@ class OverlayView(ImageCanvas):
                     "edges": "DRR bone edges on X-ray"}[self.mode]
             texts["tl"] = f"Overlay: {mode}"
             texts["tr"] = self.summary
+            outside = [lv["label"] for lv in self.levels if not lv.get("in_image", True)]
             texts["bl"] = ""
+            if outside:
+                texts["tl"] += f"\nprojected outside the image: {', '.join(outside)}"
         return texts
 
     def draw_annotations(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> None:

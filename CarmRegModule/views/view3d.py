@@ -52,55 +52,70 @@ def choose_mode() -> str:
     return "offscreen" if offscreen_vtk_available() else "message"
 
 
-def bone_surface(volume, threshold_hu: float = BONE_HU, target_mm: float = 1.6):
-    """Marching-cubes bone surface in LPS mm (pyvista PolyData), from a strided copy of the CT."""
-    import pyvista as pv
+def bone_surface(volume, threshold_hu: float = BONE_HU, target_mm: float = 2.0, max_cells: int = 600_000):
+    """Marching-cubes iso-surface at ``threshold_hu`` in LPS mm (pyvista PolyData), or None if empty.
 
-    stride = max(1, int(round(target_mm / float(volume.spacing_mm.min()))))
-    strides = [max(1, int(round(target_mm / s))) for s in volume.spacing_mm] if stride > 1 else [1, 1, 1]
-    hu = np.asarray(volume.hu[::strides[0], ::strides[1], ::strides[2]], np.float32)
-    grid = pv.ImageData(dimensions=hu.shape)
-    grid.point_data["hu"] = hu.ravel(order="F")
-    surface = grid.contour([threshold_hu], scalars="hu")
+    The CT is strided to about ``target_mm`` voxels and lightly smoothed (Gaussian, 0.7 voxel) so noise and
+    small contrast-filled vessels make fewer islands; the stride grows until the surface has at most
+    ``max_cells`` triangles (keeps the 3D view responsive on software OpenGL)."""
+    import pyvista as pv
+    from scipy import ndimage
+
+    spacing = np.asarray(volume.spacing_mm, float)
+    for factor in (1.0, 1.5, 2.0, 3.0):
+        strides = np.maximum(1, np.round(factor * target_mm / spacing)).astype(int)
+        hu = np.asarray(volume.hu[::strides[0], ::strides[1], ::strides[2]], np.float32)
+        hu = ndimage.gaussian_filter(hu, 0.7)
+        grid = pv.ImageData(dimensions=hu.shape)
+        grid.point_data["hu"] = hu.ravel(order="F")
+        surface = grid.contour([float(threshold_hu)], scalars="hu")
+        if surface.n_cells <= max_cells:
+            break
     if surface.n_points == 0:
         return None
-    ijk = np.asarray(surface.points) * np.asarray(strides, float)
+    ijk = np.asarray(surface.points) * strides.astype(float)
     surface.points = ijk @ volume.ijk_to_lps[:3, :3].T + volume.ijk_to_lps[:3, 3]
-    if surface.n_cells > 400_000:
-        surface = surface.decimate(1.0 - 400_000 / surface.n_cells)
-    return surface
+    return surface.compute_normals(cell_normals=False, auto_orient_normals=False)
 
 
 def build_scene(plotter, surface, points: list[tuple[str, np.ndarray]], carm: dict | None,
-                selected: str | None = None) -> None:
-    """Fill a pyvista plotter with bone, named centroids and the C-arm frustum (all LPS mm)."""
+                selected: str | None = None, ct_corners_lps_mm: np.ndarray | None = None) -> None:
+    """Fill a pyvista plotter with bone, the CT's outline, named centroids and the C-arm frustum (LPS mm)."""
     import pyvista as pv
 
-    plotter.clear()
+    plotter.clear_actors()  # not clear(): that also removes the lights
     plotter.set_background("#15181c", top="#2b3038")
+    if ct_corners_lps_mm is not None:
+        # corners are ordered i-major (see Volume.corners_lps_mm): edges join corners differing in one index
+        edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+        outline = pv.PolyData(np.asarray(ct_corners_lps_mm, float),
+                              lines=np.hstack([[2, a, b] for a, b in edges]))
+        plotter.add_mesh(outline, color="#6c757d", line_width=1, name="ct_outline", render=False)
     if surface is not None:
-        plotter.add_mesh(surface, color="#e9dfc8", smooth_shading=True, specular=0.25, name="bone")
+        plotter.add_mesh(surface, color="#e9dfc8", specular=0.25, name="bone", render=False)  # normals precomputed
     if points:
         coords = np.array([p for _, p in points], float)
         colors = ["#ffd43b" if name == selected else "#39d0ff" for name, _ in points]
         for (name, p), color in zip(points, colors, strict=True):
-            plotter.add_mesh(pv.Sphere(radius=4.0, center=p), color=color, name=f"pt_{name}")
+            plotter.add_mesh(pv.Sphere(radius=4.0, center=p), color=color, name=f"pt_{name}", render=False)
         plotter.add_point_labels(coords, [n for n, _ in points], font_size=14, text_color="white",
                                  shape_color="#1c2530", shape_opacity=0.7, point_size=1, show_points=False,
-                                 always_visible=True, name="labels")
+                                 always_visible=True, name="labels", render=False)
     if carm is not None:
         source, corners = np.asarray(carm["source_lps_mm"], float), np.asarray(carm["detector_lps_mm"], float)
-        plotter.add_mesh(pv.Sphere(radius=12.0, center=source), color="#ff6b6b", name="source")
+        plotter.add_mesh(pv.Sphere(radius=12.0, center=source), color="#ff6b6b", name="source", render=False)
         quad = pv.PolyData(corners, faces=[4, 0, 1, 2, 3])
-        plotter.add_mesh(quad, color="#74c0fc", opacity=0.35, name="detector")
-        plotter.add_mesh(quad.extract_all_edges(), color="#74c0fc", line_width=2, name="detector_edges")
+        plotter.add_mesh(quad, color="#74c0fc", opacity=0.35, name="detector", render=False)
+        plotter.add_mesh(quad.extract_all_edges(), color="#74c0fc", line_width=2, name="detector_edges", render=False)
         lines = pv.PolyData(np.vstack([source[None], corners]),
                             lines=np.hstack([[2, 0, i] for i in range(1, 5)]))
-        plotter.add_mesh(lines, color="#ffa94d", line_width=1.5, name="frustum")
+        plotter.add_mesh(lines, color="#ffa94d", line_width=1.5, name="frustum", render=False)
         centre = corners.mean(0)
         axis = pv.Line(source, centre)
-        plotter.add_mesh(axis, color="#ffa94d", line_width=1, opacity=0.6, name="axis")
-    plotter.add_axes(xlabel="L", ylabel="P", zlabel="S")
+        plotter.add_mesh(axis, color="#ffa94d", line_width=1, opacity=0.6, name="axis", render=False)
+    if not getattr(plotter, "_carmreg_axes", False):
+        plotter.add_axes(xlabel="L", ylabel="P", zlabel="S")
+        plotter._carmreg_axes = True
 
 
 def set_view(plotter, name: str, bounds_centre: np.ndarray, distance: float) -> None:
@@ -145,10 +160,20 @@ class View3D(QtWidgets.QWidget):
             button.setText(name)
             button.clicked.connect(lambda _=False, n=name: self.show_view(n))
             bar.addWidget(button)
-        self.bone_check = QtWidgets.QCheckBox("Bone")
+        self.bone_check = QtWidgets.QCheckBox("Bone >=")
         self.bone_check.setChecked(True)
         self.bone_check.toggled.connect(lambda _: self.refresh())
         bar.addWidget(self.bone_check)
+        self.threshold_spin = QtWidgets.QSpinBox()
+        self.threshold_spin.setRange(-1000, 3000)
+        self.threshold_spin.setSingleStep(50)
+        self.threshold_spin.setValue(int(BONE_HU))
+        self.threshold_spin.setSuffix(" HU")
+        self.threshold_spin.setKeyboardTracking(False)
+        self.threshold_spin.setToolTip("Iso-surface threshold; raise it (e.g. 400) if contrast-filled vessels "
+                                       "hide the spine")
+        self.threshold_spin.valueChanged.connect(lambda _v: self.set_volume(self._volume))
+        bar.addWidget(self.threshold_spin)
         layout.addLayout(bar)
         self.stack = QtWidgets.QStackedWidget()
         self.image_label = _DragLabel(self)
@@ -192,7 +217,7 @@ class View3D(QtWidgets.QWidget):
         self._surface = surface
         if volume is not None and surface is None and self.mode != "message":
             try:
-                self._surface = bone_surface(volume)
+                self._surface = bone_surface(volume, float(self.threshold_spin.value()))
             except Exception as exc:  # noqa: BLE001 - the 3D view is optional
                 LOG.warning("bone surface failed: %s", exc)
         self.refresh(reset_camera=True)
@@ -220,8 +245,9 @@ class View3D(QtWidgets.QWidget):
         try:
             plotter = self._plotter if self.mode == "interactive" else self._offscreen_plotter()
             camera = None if reset_camera else plotter.camera_position
+            corners = self._volume.corners_lps_mm() if self._volume is not None else None
             build_scene(plotter, self._surface if self.bone_check.isChecked() else None, self._points,
-                        self._carm, self._selected)
+                        self._carm, self._selected, corners)
             if reset_camera or camera is None or self._volume is None:
                 self._apply_view(plotter)
             else:
@@ -237,24 +263,22 @@ class View3D(QtWidgets.QWidget):
             self.image_label.setText(f"3D view unavailable ({exc.__class__.__name__}).\nThe rest of CarmReg works.")
 
     def _apply_view(self, plotter) -> None:
-        pts = []
-        if self._volume is not None:
-            pts.append(self._volume.corners_lps_mm())
-        if self._carm is not None:
-            pts.append(np.vstack([self._carm["source_lps_mm"][None], self._carm["detector_lps_mm"]]))
-        if not pts:
+        """Look from the chosen direction and fit every actor (CT, points, C-arm) in the view."""
+        if self._volume is None and self._carm is None:
             plotter.reset_camera()
             return
-        allp = np.vstack(pts)
-        centre = (allp.min(0) + allp.max(0)) / 2
-        radius = float(np.linalg.norm(allp.max(0) - allp.min(0))) / 2
-        set_view(plotter, self._view_name, centre, 2.6 * radius)
+        centre = self._volume.center_lps_mm() if self._volume is not None else self._carm["source_lps_mm"]
+        set_view(plotter, self._view_name, np.asarray(centre, float), 1000.0)
+        plotter.reset_camera()  # fits the bounding sphere vertically; narrow views need more room
+        width, height = self._render_size() if self.mode != "interactive" else (self.width(), self.height())
+        plotter.camera.zoom(1.1 * min(1.0, width / max(height, 1)))
         plotter.reset_camera_clipping_range()
 
     def _show_offscreen(self, plotter) -> None:
         size = self._render_size()
         if tuple(plotter.window_size) != size:
             plotter.window_size = size
+        plotter.render()  # screenshot() alone may return the previous frame
         image = np.ascontiguousarray(plotter.screenshot(return_img=True))
         rows, cols = image.shape[:2]
         qimage = QtGui.QImage(image.data, cols, rows, 3 * cols, QtGui.QImage.Format.Format_RGB888).copy()
@@ -263,14 +287,19 @@ class View3D(QtWidgets.QWidget):
     def rotate(self, d_azimuth: float, d_elevation: float) -> None:
         if self._plotter is None or self.mode != "offscreen":
             return
-        self._plotter.camera.azimuth += d_azimuth
-        self._plotter.camera.elevation = float(np.clip(self._plotter.camera.elevation + d_elevation, -80, 80))
+        camera = self._plotter.camera
+        camera.Azimuth(float(d_azimuth))
+        camera.Elevation(float(d_elevation))
+        camera.OrthogonalizeViewUp()
+        self._plotter.reset_camera_clipping_range()
+        self._plotter.render()
         self._show_offscreen(self._plotter)
 
     def render_image(self) -> np.ndarray | None:
         """RGB (rows, cols, 3) uint8 of the current 3D scene, or None without OpenGL."""
         if self.mode == "message" or self._plotter is None:
             return None
+        self._plotter.render()
         return np.asarray(self._plotter.screenshot(return_img=True))
 
     def prepare_grab(self) -> None:
@@ -290,8 +319,8 @@ class View3D(QtWidgets.QWidget):
 
     def resizeEvent(self, event) -> None:
         super().resizeEvent(event)
-        if self.mode == "offscreen" and self._plotter is not None:
-            QtCore.QTimer.singleShot(0, self.refresh)
+        if self.mode != "message" and self._plotter is not None:
+            QtCore.QTimer.singleShot(0, lambda: self.refresh(reset_camera=True))
 
     def close_plotter(self) -> None:
         if self._plotter is not None:

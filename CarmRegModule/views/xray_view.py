@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from qtpy import QtCore
 
+from ..qt_common import robust_range
 from .image_canvas import ImageCanvas
 
 
@@ -23,10 +24,24 @@ class XrayView(ImageCanvas):
 
     def set_pixels(self, pixels: np.ndarray | None) -> None:
         self._fitted_once = False
+        self._field = None
         self.set_image(None if pixels is None else np.asarray(pixels, np.float32))
         if pixels is not None:
+            from Logic.xray_prep import field_mask
+
             lo, hi = float(np.nanmin(pixels)), float(np.nanmax(pixels))
             self._data_range = (lo, hi if hi > lo else lo + 1.0)
+            self._field = field_mask(pixels)  # the exposed field: burnt-in text and collimator left out
+            self.auto_window()
+
+    def auto_window(self) -> None:
+        """Window/level from the 1st-99.5th percentiles inside the exposed field."""
+        if self._image is None:
+            return
+        field = getattr(self, "_field", None)
+        values = self._image[field] if field is not None and field.any() else self._image
+        lo, hi = robust_range(values)
+        self.set_window_level(hi - lo, (hi + lo) / 2)
 
     def size_px(self) -> tuple[int, int] | None:
         if self._image is None:

@@ -102,3 +102,14 @@ def test_mpde_is_in_detector_millimetres():
     pose = np.zeros(6)
     uv = _clicks(pose) + np.array([10.0, 0.0])  # 10 px = 3 mm at 0.3 mm pixels
     assert mpde_mm(GEOMETRY, pose, SPINE_LPS_MM[2:5], uv) == pytest.approx(3.0, rel=1e-9)
+
+
+def test_depth_stage_recentres_the_translation_the_coarse_grid_left():
+    true_pose = np.array([-20.0, 6.0, 12.0, 0, 0, 0])
+    uv = _clicks(true_pose)
+    start_mpde = mpde_mm(GEOMETRY, np.array([-20.0, 0.0, 16.0, 0, 0, 0]), SPINE_LPS_MM[2:5], uv)
+    result = depth_search(GEOMETRY, 0.0, 16.0, SPINE_LPS_MM[2:5], uv)
+    pose = np.array([result.tx_mm, result.ty_mm, result.tz_mm, 0, 0, 0])
+    assert start_mpde > 4.0
+    assert mpde_mm(GEOMETRY, pose, SPINE_LPS_MM[2:5], uv) < 0.05
+    assert (result.ty_mm, result.tz_mm) == (pytest.approx(6.0, abs=0.2), pytest.approx(12.0, abs=0.2))

@@ -1,0 +1,212 @@
+"""Registration in the window: inputs from the current data, the worker thread, results shown in the views.
+
+Stage by stage: the first ``run_next_stage`` prepares a state with ``CarmRegLogic.prepare``; each call runs one
+stage on a worker thread; after the last stage ``CarmRegLogic.result`` builds the RegistrationResult. Any
+change of data, geometry or landmarks drops the prepared state (the stages must be run again).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from Logic import session as session_io
+from Logic.errors import CancelledError, CarmRegError, GeometryError, InputFileError, RegistrationError
+
+from .qt_common import process_events, report_errors
+from .worker import RegistrationWorker
+
+LOG = logging.getLogger("carmreg.gui")
+
+
+def _registration_api():
+    """The pipeline's names, imported late so the GUI starts even if the logic has an import problem."""
+    from Logic import pipeline
+    return pipeline
+
+
+class WindowRegistration:
+    """Mixin of CarmRegWidget: run, cancel, show and export the registration."""
+
+    # =========================================================================================== registration
+    def _stages(self) -> tuple[str, ...]:
+        try:
+            return tuple(_registration_api().STAGES)
+        except Exception:  # noqa: BLE001 - the panel still shows; running will report the problem
+            return ("database", "spatial", "depth", "fine", "final_drr")
+
+    def _metrics(self) -> tuple[str, ...]:
+        try:
+            from Logic.similarity import METRICS
+            return tuple(METRICS)
+        except Exception:  # noqa: BLE001
+            return ("gc",)
+
+    def registration_inputs(self):
+        """(ct, ct_landmarks, xray, xray_landmarks) or a CarmRegError saying what is missing."""
+        if self.ct_volume is None:
+            raise InputFileError("load a CT first (step 1)")
+        if self.xray is None:
+            raise InputFileError("load an X-ray first (step 1)")
+        if self.xray.intrinsics is None:
+            raise GeometryError("the X-ray geometry is incomplete: choose a device preset or enter the SDD and "
+                                "pixel spacing (step 1)")
+        return self.ct_volume, self.ct_store.to_landmarks(), self.xray, self.xray_store.to_landmarks()
+
+    def registration_parameters(self):
+        from Logic.resources import cache_dir
+
+        api = _registration_api()
+        chosen = self.registration_panel.parameters()
+        values = {"metric": chosen["metric"], "cache_dir": str(cache_dir()) if chosen["use_cache"] else None}
+        values.update(self.parameter_overrides)
+        return api.RegistrationParameters(**values)
+
+    def run_registration(self, wait: bool = False) -> None:
+        """Run every stage on a worker thread; ``wait`` blocks until done (scripts, tests)."""
+        api = _registration_api()
+        inputs, params = self.registration_inputs(), self.registration_parameters()
+
+        def job(logic, stage_done):
+            state = logic.prepare(*inputs, params)
+            for name in api.STAGES:
+                stage_done(logic.run_stage(state, name))
+            return state, logic.result(state)
+        self.registration_panel.reset()
+        self._start_worker(api.CarmRegLogic(), job, wait)
+
+    def run_next_stage(self, wait: bool = False) -> None:
+        """Run only the next stage (prepares the inputs on the first call)."""
+        api = _registration_api()
+        name = self.registration_panel.next_stage()
+        if name is None:
+            return
+        state = self._reg_state
+        inputs = None if state is not None else self.registration_inputs()
+        params = None if state is not None else self.registration_parameters()
+
+        def job(logic, stage_done):
+            st = state if state is not None else logic.prepare(*inputs, params)
+            stage_done(logic.run_stage(st, name))
+            last = name == api.STAGES[-1]
+            return st, (logic.result(st) if last else None)
+        self._start_worker(api.CarmRegLogic(), job, wait)
+
+    def cancel_registration(self) -> None:
+        if self._worker is not None and self._worker.isRunning():
+            self._worker.cancel()
+            self.statusBar().showMessage("Cancelling after the current step...", 5000)
+
+    def reset_registration(self) -> None:
+        self._reg_state = None
+        self.registration_panel.reset()
+        self._update_readiness()
+
+    def is_running(self) -> bool:
+        return self._worker is not None and self._worker.isRunning()
+
+    def _start_worker(self, logic, job, wait: bool) -> None:
+        if self.is_running():
+            raise RegistrationError("a registration is already running; wait for it or cancel it")
+        worker = RegistrationWorker(logic, job, self)
+        worker.inputs_version = self.inputs_version
+        worker.progress.connect(self.registration_panel.set_progress)
+        worker.stage_done.connect(self.registration_panel.stage_done)
+        worker.succeeded.connect(self._worker_succeeded)
+        worker.failed.connect(self._worker_failed)
+        worker.finished.connect(self._worker_finished)
+        self._worker = worker
+        self.registration_panel.set_running(True)
+        self.act_cancel.setEnabled(True)
+        self.act_register.setEnabled(False)
+        self.set_step(3)
+        worker.start()
+        if wait:
+            self.wait_for_registration()
+
+    def wait_for_registration(self, timeout_s: float = 600.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while self._worker is not None and time.monotonic() < deadline:
+            self._worker.wait(50)
+            process_events()
+
+    def _worker_succeeded(self, value) -> None:
+        state, result = value
+        current = self._worker is None or getattr(self._worker, "inputs_version", None) == self.inputs_version
+        self._reg_state = state if current else None
+        if result is not None:
+            self.set_result(result)
+            if not current:  # the user edited while it ran: show it, but say it is out of date
+                self.result_stale = True
+                self.overlay_view.summary = "inputs changed during the run: register again"
+                self.overlay_view.viewport().update()
+        else:
+            self.registration_panel.set_running(False)
+
+    @report_errors
+    def _worker_failed(self, exc, details: str) -> None:
+        self.registration_panel.set_running(False)
+        if isinstance(exc, CancelledError):
+            self.registration_panel.set_cancelled(str(exc))
+            self._reg_state = None
+            self.registration_panel.reset()
+            self.statusBar().showMessage("Registration cancelled", 6000)
+            return
+        self.registration_panel.set_cancelled("failed")
+        if isinstance(exc, CarmRegError):
+            self.dialogs.error("CarmReg - registration", str(exc))
+        else:
+            LOG.error("registration failed\n%s", details)
+            self.dialogs.error("CarmReg - unexpected error",
+                               f"The registration failed unexpectedly: {exc.__class__.__name__}: {exc}", details)
+
+    def _worker_finished(self) -> None:
+        worker, self._worker = self._worker, None
+        self.act_cancel.setEnabled(False)
+        self.act_register.setEnabled(True)
+        self._update_readiness()
+        if worker is not None:
+            worker.deleteLater()
+        self.registration_finished.emit(self.result is not None and not self.result_stale)
+
+    def set_result(self, result) -> None:
+        """Show a RegistrationResult: overlay, per-level PDE, stage figures, C-arm in 3D."""
+        self.result, self.result_stale = result, False
+        clicks = self.xray_store.to_landmarks().as_dict()
+        fine = next((s for s in result.stages if s.name == "fine"), None)
+        summary = (f"mPDE {fine.mpde_mm:.2f} mm   " if fine and fine.mpde_mm is not None else "") + \
+                  f"magnification {result.magnification:.2f}" + ("" if result.ok else "   CHECK FAILED")
+        self.overlay_view.set_result(self.xray.pixels, self.xray.bone_dark, result.drr_line_integral,
+                                     result.levels, clicks, summary)
+        self.result_panel.set_result(result)
+        self.registration_panel.set_result(result)
+        g = result.geometry
+        self.view3d_result.set_points([(p.label, p.position) for p in self.ct_store.points() if p.label])
+        self.view3d_result.set_carm(g.source_lps_mm(result.pose), g.detector_corners_lps_mm(result.pose))
+        self.last_result_summary = session_io.summarize_result(result)
+        self._mark_dirty()
+        self.set_step(4)
+        self.result_ready.emit(result)
+
+    def export_result(self, out_dir: str | Path) -> dict:
+        """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
+        if self.result is None:
+            raise RegistrationError("there is no result to export yet: run the registration (step 4)")
+        api = _registration_api()
+        clicks = self.xray_store.to_landmarks().as_dict()
+        saver = getattr(api.CarmRegLogic, "save_result", None)
+        if saver is not None:
+            try:
+                paths = api.CarmRegLogic().save_result(self.result, out_dir, xray_pixels=self.xray.pixels,
+                                                       clicked=clicks)
+            except TypeError:
+                paths = api.CarmRegLogic().save_result(self.result, out_dir)
+        else:
+            from Logic.report import save_result
+            paths = save_result(self.result, out_dir, self.xray.pixels, clicks)
+        if self.last_result_summary is not None:
+            self.last_result_summary["out_dir"] = str(out_dir)
+        self.statusBar().showMessage(f"Result written to {out_dir}", 8000)
+        return dict(paths or {})
+

@@ -1,0 +1,179 @@
+"""Session handling of the window: save/open (readable JSON via ``Logic.session``), new, unsaved-work
+prompts, autosave after every change and recovery of the autosave a crashed run left behind."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from qtpy import QtGui
+
+from Logic import session as session_io
+from Logic.errors import CarmRegError
+
+LOG = logging.getLogger("carmreg.gui")
+
+
+class WindowSession:
+    """Mixin of CarmRegWidget: session file, dirty state, autosave and recovery, closing."""
+
+    # =========================================================================================== session
+    def current_session(self) -> session_io.Session:
+        return session_io.Session(
+            ct_path=self.ct_path, xray_path=self.xray_path,
+            geometry_overrides={k: v for k, v in self.geometry_overrides.items()},
+            ct_points=self.ct_store.to_records(), xray_points=self.xray_store.to_records(),
+            parameters=self.registration_panel.parameters(), last_result=self.last_result_summary)
+
+    def save_session(self, path: str | Path) -> Path:
+        path = Path(path)
+        if not path.name.endswith(".json"):
+            path = path.with_name(path.name + session_io.SESSION_SUFFIX)
+        session_io.save_session(path, self.current_session())
+        self.session_path = str(path)
+        self._dirty = False
+        self.undo_stack.setClean()
+        self._update_title()
+        self.statusBar().showMessage(f"Session saved to {path}", 6000)
+        return path
+
+    def open_session(self, path: str | Path) -> None:
+        self.restore_session(session_io.load_session(path), str(path))
+
+    def restore_session(self, session: session_io.Session, path: str | None, dirty: bool = False) -> None:
+        """Load data and points from a Session; missing data files are reported, points are kept."""
+        self.new_session(ask=False)
+        problems = []
+        if session.ct_path:
+            try:
+                self.load_ct(session.ct_path)
+            except CarmRegError as exc:
+                problems.append(str(exc))
+        if session.xray_path:
+            try:
+                self.load_xray(session.xray_path, session.geometry_overrides)
+            except CarmRegError as exc:
+                problems.append(str(exc))
+        self.geometry_overrides = dict(session.geometry_overrides)
+        self.ct_store.replace_all([p["label"] for p in session.ct_points],
+                                  [p["position_lps_mm"] for p in session.ct_points], undoable=False)
+        self.xray_store.replace_all([p["label"] for p in session.xray_points],
+                                    [p["uv_px"] for p in session.xray_points], undoable=False)
+        metric = session.parameters.get("metric")
+        if metric:
+            self.registration_panel.metric_combo.setCurrentText(metric)
+        self.last_result_summary = session.last_result
+        self.undo_stack.clear()
+        self.session_path = path
+        self._dirty = dirty
+        self._update_title()
+        if problems:
+            self.dialogs.error("CarmReg - session", "The session opened, but:\n" + "\n".join(problems))
+
+    def new_session(self, ask: bool = True) -> bool:
+        if ask and not self.maybe_save("Start a new session"):
+            return False
+        if self.is_running():
+            self.cancel_registration()
+            self.wait_for_registration(30)
+        self.set_ct_volume(None)
+        self.set_xray_image(None)
+        self.geometry_overrides = {}
+        for store in (self.ct_store, self.xray_store):
+            store.replace_all([], [], undoable=False)
+        self.undo_stack.clear()
+        self.result, self.last_result_summary, self.session_path = None, None, None
+        self.overlay_view.clear()
+        self.result_panel.set_result(None)
+        self.view3d_result.set_carm(None, None)
+        self.reset_registration()
+        self._dirty = False
+        self._update_title()
+        return True
+
+    def is_dirty(self) -> bool:
+        return self._dirty or not self.undo_stack.isClean()
+
+    def maybe_save(self, what: str) -> bool:
+        """Ask before discarding unsaved work: True to go on (saved or discarded), False to stop."""
+        if not self.is_dirty():
+            return True
+        choice = self.dialogs.question("CarmReg", f"{what}: the session has unsaved changes. Save them first?",
+                                       ("Save", "Discard", "Cancel"))
+        if choice == "Save":
+            return self._action_save() is not None
+        return choice == "Discard"
+
+    # ------------------------------------------------------------------------------------- autosave
+    def autosave_now(self) -> Path | None:
+        if not self.autosave_enabled:
+            return None
+        try:
+            path = session_io.write_autosave(self.current_session(), folder=self.state_folder)
+        except OSError as exc:
+            self.autosave_label.setText(f"autosave failed: {exc}")
+            return None
+        self.autosave_label.setText(f"Autosaved {time.strftime('%H:%M:%S')}")
+        return path
+
+    def offer_recovery(self) -> bool:
+        """If a previous run crashed, offer its autosave. Returns True when work was recovered."""
+        found = session_io.find_recoverable(self.state_folder)
+        if not found:
+            return False
+        newest = found[0]
+        try:
+            session = session_io.load_session(newest)
+        except CarmRegError as exc:
+            LOG.warning("unreadable autosave %s: %s", newest, exc)
+            newest.unlink(missing_ok=True)
+            return False
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(newest.stat().st_mtime))
+        text = (f"CarmReg did not close normally ({when}). Recover the unsaved work?\n\n"
+                f"CT: {session.ct_path or '-'}\nX-ray: {session.xray_path or '-'}\n"
+                f"{len(session.ct_points)} CT point(s), {len(session.xray_points)} X-ray point(s)")
+        choice = self.dialogs.question("CarmReg - recover work", text, ("Recover", "Discard", "Later"))
+        if choice == "Later":
+            return False
+        if choice == "Recover":
+            self.restore_session(session, None, dirty=True)
+            self.autosave_now()
+        for path in found:
+            path.unlink(missing_ok=True)
+        return choice == "Recover"
+
+    def _mark_dirty(self) -> None:
+        self._dirty = True
+        self._update_title()
+        if self.autosave_enabled:
+            self._autosave_timer.start()
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:
+        if self.is_running():
+            choice = self.dialogs.question("CarmReg", "A registration is running. Cancel it and quit?",
+                                           ("Cancel and quit", "Keep running"))
+            if choice != "Cancel and quit":
+                event.ignore()
+                return
+            self.cancel_registration()
+            self.wait_for_registration(30)
+        if not self.maybe_save("Quit"):
+            event.ignore()
+            return
+        self._autosave_timer.stop()
+        if self.autosave_enabled:
+            session_io.clear_autosave(folder=self.state_folder)
+        for v3 in (self.view3d, self.view3d_result):
+            v3.close_plotter()
+        event.accept()
+
+    def discard_and_close(self) -> None:
+        """Close without asking and without keeping an autosave (scripts, screenshots, tests)."""
+        if self.is_running():
+            self.cancel_registration()
+            self.wait_for_registration(30)
+        self._dirty = False
+        self.undo_stack.clear()
+        self.close()
+
