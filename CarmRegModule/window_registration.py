@@ -34,7 +34,7 @@ class WindowRegistration:
         try:
             return tuple(_registration_api().STAGES)
         except Exception:  # noqa: BLE001 - the panel still shows; running will report the problem
-            return ("database", "spatial", "depth", "fine", "final_drr")
+            return ("database", "spatial", "depth", "fine", "refine", "final_drr")
 
     def _metrics(self) -> tuple[str, ...]:
         try:
@@ -193,18 +193,9 @@ class WindowRegistration:
         """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
-        api = _registration_api()
         clicks = self.xray_store.to_landmarks().as_dict()
-        saver = getattr(api.CarmRegLogic, "save_result", None)
-        if saver is not None:
-            try:
-                paths = api.CarmRegLogic().save_result(self.result, out_dir, xray_pixels=self.xray.pixels,
-                                                       clicked=clicks)
-            except TypeError:
-                paths = api.CarmRegLogic().save_result(self.result, out_dir)
-        else:
-            from Logic.report import save_result
-            paths = save_result(self.result, out_dir, self.xray.pixels, clicks)
+        paths = _registration_api().CarmRegLogic().save_result(
+            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)

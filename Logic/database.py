@@ -5,27 +5,27 @@ pixels), at C-arm poses ``(tx = tx_mm, ty, tz, 0, 0, 0)`` for ty in ``ty_range_m
 ``tz_range_mm`` (paper: -50..+50 mm in 2 mm steps = 2601 DRRs). Stored as ``drrs[iy, iz, row, col]`` float32
 line integrals.
 
-Cache: ``<cache_dir>/db-<key>.npz``, where the key is a SHA-256 of the mu level (bytes and affine), the
-geometry (intrinsics, isocentre, SOD), the grid, and the format version: any change gives a new key.
-A cache file that cannot be read or whose stored key differs is rebuilt, never trusted.
+Cache: ``<cache_dir>/db-<key>.npy`` (the raw float32 array, memory-mapped on load so a cached database
+costs no copy) beside ``db-<key>.json`` (key, shape, grid), where the key is a SHA-256 of the mu level
+(bytes and affine), the geometry (intrinsics, isocentre, SOD), the grid, and the format version: any change
+gives a new key. A cache that cannot be read, whose stored key or shape differs, is rebuilt, never trusted.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write
+from .atomic import atomic_write, atomic_write_json
 from .camera import CarmGeometry, CarmIntrinsics
 from .drr_cpu import render_line_integrals
 from .volume import MuLevel
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 @dataclass
@@ -67,14 +67,29 @@ def database_key(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrins
     return h.hexdigest()[:24]
 
 
-def _load_cached(path: Path, key: str) -> np.ndarray | None:
+def _cache_paths(cache_dir, key: str) -> tuple[Path, Path]:
+    return Path(cache_dir) / f"db-{key}.npy", Path(cache_dir) / f"db-{key}.json"
+
+
+def _load_cached(cache_dir, key: str, shape: tuple) -> np.ndarray | None:
+    """The cached DRR array (memory-mapped) if its sidecar names this key and shape, else None."""
+    data_path, meta_path = _cache_paths(cache_dir, key)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if str(data["key"]) != key:
-                return None
-            return np.array(data["drrs"], dtype=np.float32)
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError):
+        meta = json.loads(meta_path.read_text())
+        if meta.get("key") != key or tuple(meta.get("shape", ())) != shape:
+            return None
+        drrs = np.load(data_path, mmap_mode="r", allow_pickle=False)
+        if drrs.shape != shape or drrs.dtype != np.float32:
+            return None
+        return drrs
+    except (OSError, ValueError, json.JSONDecodeError, AttributeError, TypeError):
         return None
+
+
+def _save_cached(cache_dir, key: str, drrs: np.ndarray) -> None:
+    data_path, meta_path = _cache_paths(cache_dir, key)
+    atomic_write(data_path, lambda tmp: np.save(tmp, drrs, allow_pickle=False))
+    atomic_write_json(meta_path, {"key": key, "shape": list(drrs.shape), "format": FORMAT_VERSION})
 
 
 def build_database(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
@@ -85,21 +100,20 @@ def build_database(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntri
 
     start = time.perf_counter()
     key = database_key(level, geometry, intrinsics, ty_mm, tz_mm, tx_mm)
-    path = Path(cache_dir) / f"db-{key}.npz" if cache_dir else None
-    if path is not None and path.is_file():
-        drrs = _load_cached(path, key)
-        if drrs is not None and drrs.shape[:2] == (len(ty_mm), len(tz_mm)):
-            return DrrDatabase(ty_mm, tz_mm, tx_mm, drrs, intrinsics, key, time.perf_counter() - start, True)
+    cols, rows = intrinsics.size_px
+    shape = (len(ty_mm), len(tz_mm), rows, cols)
+    cached = _load_cached(cache_dir, key, shape) if cache_dir else None
+    if cached is not None:
+        return DrrDatabase(ty_mm, tz_mm, tx_mm, cached, intrinsics, key, time.perf_counter() - start, True)
     db = DrrDatabase(ty_mm, tz_mm, tx_mm, np.empty(0), intrinsics, key)
     poses = db.poses().reshape(-1, 6)
-    cols, rows = intrinsics.size_px
     flat = np.empty((len(poses), rows, cols), np.float32)
     for i in range(0, len(poses), chunk):
         flat[i:i + chunk] = render_line_integrals(level, geometry, poses[i:i + chunk], intrinsics)
         if progress:
             progress(min(1.0, (i + chunk) / len(poses)))
-    db.drrs = flat.reshape(len(ty_mm), len(tz_mm), rows, cols)
-    if path is not None:
-        atomic_write(path, lambda tmp: np.savez(tmp, drrs=db.drrs, key=np.array(key)))
+    db.drrs = flat.reshape(shape)
+    if cache_dir:
+        _save_cached(cache_dir, key, db.drrs)
     db.seconds = time.perf_counter() - start
     return db

@@ -2,8 +2,8 @@
 
 Three nearly collinear centroids fix the in-plane pose and the magnification, but hardly the rotations out of
 the image plane; the whole image does. Starting at the landmark pose, CMA-ES maximises the gradient correlation
-(GC, ``similarity.gc``) between the X-ray and DRRs of a medium mu level (default 2 mm) on a binned detector
-(default ~1.5 mm pixels), inside the exposed field, while a small landmark term keeps the clicked centroids
+(GC, ``similarity.gc``) between the X-ray and DRRs of a medium mu level (default 3 mm) on a binned detector
+(default ~2 mm pixels), inside the exposed field, while a small landmark term keeps the clicked centroids
 where the surgeon put them::
 
     f(p) = (1 - GC(p)) + w_lm * mean_i (PDE_i(p) / s_click)^2 + w_rot * sum_k (theta_k / 10 deg)^2
@@ -32,10 +32,10 @@ from .xray_prep import bin_image, bin_mask
 class RefineParameters:
     enabled: bool = True
     metric: str = "gc"
-    mu_spacing_mm: float = 2.0
-    detector_pixel_mm: float = 1.5
-    popsize: int = 16
-    max_evaluations: int = 800
+    mu_spacing_mm: float = 3.0
+    detector_pixel_mm: float = 2.0
+    popsize: int = 12
+    max_evaluations: int = 480
     sigma: tuple = (6.0, 1.5, 1.5, 1.5, 2.0, 2.0)       # mm, deg
     bounds: tuple = (40.0, 10.0, 10.0, 6.0, 10.0, 10.0)  # +- about the landmark pose
     landmark_weight: float = 0.02

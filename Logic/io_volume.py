@@ -38,7 +38,14 @@ import numpy as np
 from .atomic import atomic_write
 from .errors import InputFileError
 from .volume import Volume
-from .xray import DICOM_PARSE_ERRORS, describe, dicom_int, dicom_numbers, parse_all_elements
+from .xray import (
+    DICOM_PARSE_ERRORS,
+    describe,
+    dicom_int,
+    dicom_numbers,
+    drop_unreadable_elements,
+    quiet_libraries,
+)
 
 MAX_VOLUME_BYTES = 8 * 1024**3
 """Largest volume (bytes in memory) a reader accepts."""
@@ -55,10 +62,18 @@ def load_volume(path: str | Path, *, series_uid: str | None = None) -> Volume:
     path = Path(path)
     if not path.exists():
         raise InputFileError(f"{path}: CT not found; give {SUPPORTED}")
+    if not path.is_dir() and path.stat().st_size == 0:
+        raise InputFileError(f"{path}: file is empty")
+    with quiet_libraries() as notes:
+        volume = _read_any(path, series_uid)
+    if notes:
+        volume.meta["library_warnings"] = notes
+    return volume
+
+
+def _read_any(path: Path, series_uid: str | None) -> Volume:
     if path.is_dir():
         return load_dicom_series(path, series_uid=series_uid)
-    if path.stat().st_size == 0:
-        raise InputFileError(f"{path}: file is empty")
     name = path.name.lower()
     if name.endswith((".nii", ".nii.gz")):
         return _load_nifti(path)
@@ -498,8 +513,25 @@ def _read_header(path: Path, pydicom):
         ds = _read_header_without_preamble(path, pydicom)
         if ds is None:
             return None
-    parse_all_elements(ds, path)
+    _drop_unneeded_damage(ds, path)
     return ds
+
+
+SLICE_KEYWORDS = {"ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns",
+                  "RescaleSlope", "RescaleIntercept", "SeriesInstanceUID", "Modality", "SOPClassUID",
+                  "ImageType", "NumberOfFrames", "PerFrameFunctionalGroupsSequence",
+                  "SharedFunctionalGroupsSequence", "BitsAllocated", "BitsStored", "PixelRepresentation",
+                  "SamplesPerPixel"}
+"""Header elements the CT reader uses: one of them unreadable makes the slice unusable."""
+
+
+def _drop_unneeded_damage(ds, path: Path) -> None:
+    """Drop elements pydicom cannot decode (e.g. a broken vendor private tag); refuse the slice when one of
+    them is needed to place or scale it, so a damaged slice is named instead of misread or skipped."""
+    needed = [name for name in drop_unreadable_elements(ds) if name.split(" ")[-1] in SLICE_KEYWORDS]
+    if needed:
+        raise InputFileError(f"{path}: the DICOM header is damaged: {', '.join(needed)} cannot be read; copy "
+                             "or export the series again")
 
 
 def _read_header_without_preamble(path: Path, pydicom):

@@ -9,6 +9,9 @@ Stages (each a plain function in its own module, returning a small result):
   spatial   - similarity of the coarse X-ray with every DRR -> (ty, tz) (``spatial_search``, Algorithm 2);
   depth     - intervertebral distances -> tx, magnification (``depth_search``, Algorithm 3);
   fine      - anchored CMA-ES on the mPDE -> 6-DOF pose (``fine_search``, Algorithm 4);
+  refine    - beyond the paper: 6-DOF CMA-ES on gradient correlation with a landmark term
+              (``intensity_refine``), which fixes the out-of-plane rotations and the magnification that three
+              nearly collinear clicks cannot; its pose is kept only if the clicks still agree with it;
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
@@ -29,6 +32,7 @@ from .depth_search import DepthResult, depth_search, tx_limits
 from .drr_cpu import render_line_integrals
 from .errors import CancelledError, LandmarkError, RegistrationError
 from .fine_search import FineParameters, FineResult, fine_search
+from .intensity_refine import RefineParameters, RefineResult, intensity_refine
 from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label
 from .pde import mpde_mm, pde_mm
 from .similarity import METRICS
@@ -37,7 +41,7 @@ from .volume import MuPyramid, Volume
 from .xray import XrayImage
 from .xray_prep import attenuation, bin_image, bin_mask, coarse_factor, field_mask
 
-STAGES = ("database", "spatial", "depth", "fine", "final_drr")
+STAGES = ("database", "spatial", "depth", "fine", "refine", "final_drr")
 
 
 @dataclass
@@ -53,6 +57,8 @@ class RegistrationParameters:
     depth_far_mm: float = 400.0             # farthest source retreat (paper: 40-50 cm)
     depth_step_mm: float = 10.0             # paper: 10 mm
     fine: FineParameters = field(default_factory=FineParameters)
+    refine: RefineParameters = field(default_factory=RefineParameters)
+    refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
     default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
@@ -62,6 +68,7 @@ class RegistrationParameters:
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d["fine"] = dict(self.fine.__dict__)
+        d["refine"] = dict(self.refine.__dict__)
         return d
 
 
@@ -93,6 +100,8 @@ class RegistrationState:
     spatial: SpatialResult | None = None
     depth: DepthResult | None = None
     fine: FineResult | None = None
+    refine: RefineResult | None = None
+    refined_pose: np.ndarray | None = None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -100,6 +109,8 @@ class RegistrationState:
     @property
     def pose(self) -> np.ndarray:
         """The best pose so far (6,)."""
+        if self.refined_pose is not None:
+            return self.refined_pose
         if self.fine is not None:
             return self.fine.pose
         if self.depth is not None:
@@ -187,7 +198,7 @@ class CarmRegLogic:
     # ------------------------------------------------------------------ stages
     def run_stage(self, state: RegistrationState, name: str) -> StageResult:
         runner = {"database": self._database, "spatial": self._spatial, "depth": self._depth,
-                  "fine": self._fine, "final_drr": self._final_drr}.get(name)
+                  "fine": self._fine, "refine": self._refine, "final_drr": self._final_drr}.get(name)
         if runner is None:
             raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
         self._report(name, 0.0, f"{name} started")
@@ -195,7 +206,7 @@ class CarmRegLogic:
         extra = runner(state) or {}
         pose = state.pose
         m = float(mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px)) \
-            if name in ("spatial", "depth", "fine") else None
+            if name in ("spatial", "depth", "fine", "refine") else None
         stage = StageResult(name, CarmPose.from_array(pose), m, time.perf_counter() - start, extra)
         state.stages = [s for s in state.stages if s.name != name] + [stage]
         self._report(name, 1.0, f"{name} done" + (f": mPDE {m:.2f} mm" if m is not None else ""))
@@ -249,6 +260,26 @@ class CarmRegLogic:
         state.fine = fine_search(state.geometry, start, state.pairs.points_lps_mm, state.pairs.uv_px,
                                  state.parameters.fine, should_stop=self._check_cancel)
         return {"evaluations": state.fine.evaluations, "objective": state.fine.objective}
+
+    def _refine(self, state: RegistrationState) -> dict:
+        p = state.parameters
+        state.refined_pose = None
+        if not p.refine.enabled:
+            return {"enabled": False}
+        start = state.pose
+        r = intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), state.geometry, start,
+                             state.xray_line_integral, state.mask, state.pairs.points_lps_mm, state.pairs.uv_px,
+                             p.refine, should_stop=self._check_cancel)
+        state.refine = r
+        accepted = r.mpde_mm <= p.refine_max_mpde_mm
+        if accepted:
+            state.refined_pose = r.pose
+        else:
+            state.warnings.append(f"the image refinement moved the clicked levels {r.mpde_mm:.1f} mm from the "
+                                  "clicks; kept the landmark pose (check the clicks and the level names)")
+        return {"enabled": True, "accepted": accepted, "evaluations": r.evaluations,
+                "similarity_start": r.similarity_start, "similarity_end": r.similarity_end,
+                "refined_mpde_mm": r.mpde_mm}
 
     def _final_drr(self, state: RegistrationState) -> dict:
         intr = state.geometry.intrinsics

@@ -617,8 +617,9 @@ class SimulatedXray:
     kwires: list[Kwire]
     options: SimulationOptions
     seed: int
-    facts: dict = field(default_factory=dict)
-    line_integrals: np.ndarray | None = None  # ideal (undistorted) L, float32, for tests and previews
+    facts: dict = field(default_factory=dict)  # exposure: photons, AEC normalisation, display mode
+    line_integrals: np.ndarray | None = None  # undistorted L incl. table and wires, float32 (tests, previews)
+    timing_s: dict = field(default_factory=dict)  # seconds per step (not part of the ground truth)
 
     @property
     def projection_matrix(self) -> np.ndarray:
@@ -787,11 +788,10 @@ def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids:
     visible = {lb: bool(np.linalg.norm(uv - distortion.center_px) < limit_px) for lb, uv in uv_true.items()}
     clicks = surgeon_clicks(rng, uv_true, visible, intr, options)
     ct_points = centroids.points_lps_mm + rng.normal(0.0, options.ct_click_sd_mm, centroids.points_lps_mm.shape)
-    facts["timing_s"] = {"prepare_s": round(t1 - t0, 3), "render_s": round(t2 - t1, 3),
-                         "detect_s": round(t3 - t2, 3)}
+    timing = {"prepare_s": t1 - t0, "render_s": t2 - t1, "detect_s": t3 - t2}
     return SimulatedXray(pixels, geometry, pose, distortion, motions, centroids,
                          Landmarks3D(centroids.labels, ct_points, "simulation"), uv_projected, uv_true, visible,
-                         clicks, wires, options, int(seed), facts, line)
+                         clicks, wires, options, int(seed), facts, line, timing)
 
 
 def write_simulated_case(out_dir: str | Path, sim: SimulatedXray) -> dict[str, Path]:
@@ -811,3 +811,68 @@ def write_simulated_case(out_dir: str | Path, sim: SimulatedXray) -> dict[str, P
     write_landmarks_3d(paths["ct_landmarks"], sim.ct_landmarks)
     atomic_write_json(paths["ground_truth"], sim.ground_truth())
     return paths
+
+
+# ----------------------------------------------------------------------------------------------- command line
+
+def load_vertebra_labels(path, ct: Volume) -> np.ndarray:
+    """A vertebra label map on the CT grid, as CarmReg values. TotalSegmentator v2 maps (values above 27)
+    are relabelled; anything else is taken as CarmReg values (1 + LEVEL_NAMES.index)."""
+    from .io_volume import load_volume
+    from .vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, to_carmreg_labels
+
+    labels = load_volume(path)
+    if labels.shape != ct.shape or not np.allclose(labels.ijk_to_lps, ct.ijk_to_lps, atol=1e-3):
+        raise GeometryError(f"{path}: the vertebra label map ({'x'.join(map(str, labels.shape))}) is not on the "
+                            f"CT grid ({'x'.join(map(str, ct.shape))}); resample it onto the CT first")
+    values = np.asarray(labels.hu)
+    if int(values.max()) > max(CARMREG_VERTEBRAE):
+        return to_carmreg_labels(values, TOTALSEGMENTATOR_V2_VERTEBRAE)
+    return values.astype(np.uint8)
+
+
+def _cli_inputs(args):
+    """(CT, labels or None, centroids) from the CLI arguments; the embedded sample case by default."""
+    from .io_volume import load_volume
+    from .landmarks import read_landmarks_3d
+    from .resources import sample_case
+    from .vertebrae import centroids_from_labels
+
+    sample = sample_case() if not args.ct else None
+    ct = load_volume(args.ct or sample["ct"])
+    label_path = args.vertebrae or (sample["vertebrae"] if sample else None)
+    labels = load_vertebra_labels(label_path, ct) if label_path else None
+    if args.ct_landmarks or sample:
+        centroids = read_landmarks_3d(args.ct_landmarks or sample["ct_landmarks"])
+    elif labels is not None:
+        centroids = centroids_from_labels(labels, ct.ijk_to_lps, CARMREG_VERTEBRAE, source=str(label_path))
+    else:
+        raise LandmarkError("simulate needs the CT's vertebral centroids: give --ct-landmarks (a .mrk.json) or "
+                            "--vertebrae (a vertebra label map on the CT grid)")
+    return ct, labels, centroids
+
+
+def run_cli(args) -> int:
+    """``carmreg simulate``: a random realistic case (pose and realism parameters drawn from ``--seed``)."""
+    ct, labels, centroids = _cli_inputs(args)
+    rng = np.random.default_rng(args.seed)
+    size = int(args.size_px or 1024)
+    options = sample_options(rng, SimulationOptions(size_px=(size, size), pixel_spacing_mm=0.25 * 1024 / size))
+    geometry = default_geometry(ct, options)
+    for attempt in range(20):
+        pose = random_pose(rng, options, centroids, args.level, geometry=geometry)
+        try:
+            sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=args.seed + 1000 * attempt)
+            break
+        except LandmarkError:
+            if attempt == 19:
+                raise
+    paths = write_simulated_case(args.out, sim)
+    visible = [lb for lb, ok in sim.visible.items() if ok]
+    print(f"simulated {size}x{size} px in {sum(sim.timing_s.values()):.1f} s; pose "
+          + ", ".join(f"{k} {v:+.1f}" for k, v in pose.as_dict().items()))
+    print(f"visible {', '.join(visible)}; clicked {', '.join(sim.clicks.labels)}; bone contrast "
+          f"x{options.bone_contrast_factor:.2f}, {options.photons_per_pixel:.0f} photons/px, pincushion "
+          f"{options.pincushion_edge_mm:.1f} mm, S {options.s_distortion_edge_mm:.1f} mm, {len(sim.kwires)} K-wire(s)")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0

@@ -43,7 +43,11 @@ grey PNG. Both are atomic.
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import struct
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,12 +232,16 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
     """
     path = Path(path)
     _check_file(path)
-    if _is_dicom(path):
-        image = _read_dicom(path, frame)
-    elif path.suffix.lower() in IMAGE_SUFFIXES:
-        image = _read_raster(path, frame)
-    else:
-        raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a PNG/TIFF")
+    with quiet_libraries() as notes:
+        if _is_dicom(path):
+            image = _read_dicom(path, frame)
+        elif path.suffix.lower() in IMAGE_SUFFIXES:
+            image = _read_raster(path, frame)
+        else:
+            raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
+                                 "PNG/TIFF")
+    if notes:
+        image.meta["library_warnings"] = notes
     manual = {"sdd_mm": sdd_mm, "pixel_spacing_mm": _spacing_pair(pixel_spacing_mm),
               "principal_point_px": principal_point_px, "sod_mm": sod_mm}
     for key, value in manual.items():
@@ -411,6 +419,31 @@ def _dcmread(path: Path):
     return ds
 
 
+QUIET_LOGGERS = ("pydicom", "nibabel", "nibabel.global", "PIL")
+
+
+@contextmanager
+def quiet_libraries(limit: int = 5) -> Iterator[list[str]]:
+    """Collect instead of print what pydicom, Pillow and nibabel warn or log while reading a damaged or
+    non-standard file (the command line keeps one line per error on stderr). Yields a list that holds, on
+    exit, the first ``limit`` distinct warning messages (for ``meta``); library log records are dropped."""
+    notes: list[str] = []
+    loggers = [logging.getLogger(name) for name in QUIET_LOGGERS]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.CRITICAL)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield notes
+    finally:
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+        for message in dict.fromkeys(" ".join(str(w.message).split())[:160] for w in caught):
+            if len(notes) < limit:
+                notes.append(message)
+
+
 def describe(exc: BaseException, limit: int = 100) -> str:
     """'Kind: message' of a library exception on one line (whitespace collapsed) and at most ``limit``
     characters of message, for embedding in a one-line CarmRegError."""
@@ -452,20 +485,6 @@ def drop_unreadable_elements(ds) -> list[str]:
             dropped.append(f"({tag.group:04X},{tag.element:04X}){' ' + keyword if keyword else ''}")
             del ds[tag]
     return dropped
-
-
-def parse_all_elements(ds, path: Path) -> None:
-    """Decode every element now (pydicom decodes lazily), so a damaged header fails here, named, and not
-    later in the middle of reading the geometry. Pixel data are not decoded."""
-    try:
-        for element in ds.iterall():
-            _ = element.value
-        if getattr(ds, "file_meta", None) is not None:
-            for element in ds.file_meta.iterall():
-                _ = element.value
-    except DICOM_PARSE_ERRORS as exc:
-        raise InputFileError(f"{path}: the DICOM header is damaged ({describe(exc, 100)}); copy or export "
-                             "the file again") from None
 
 
 def dicom_numbers(value, count: int | None, keyword: str, path: Path) -> np.ndarray | None:
@@ -634,9 +653,9 @@ def _read_raster(path: Path, frame: int | None) -> _Partial:
             mode = image.mode
             pixels = _pil_to_array(image)
     except Image.DecompressionBombError:
-        raise InputFileError(f"{path}: the image claims more than {Image.MAX_IMAGE_PIXELS // 10**6} million "
-                             "pixels, far more than an X-ray detector; the file is damaged or not an X-ray") \
-            from None
+        limit = 2 * Image.MAX_IMAGE_PIXELS // 10**6  # Pillow refuses above twice its warning threshold
+        raise InputFileError(f"{path}: the image claims more than {limit} million pixels, far more than an "
+                             "X-ray detector; the file is damaged or not an X-ray") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, TypeError, KeyError, IndexError,
             struct.error, EOFError, ZeroDivisionError, OverflowError, MemoryError) as exc:
         raise InputFileError(f"{path}: not a readable image ({describe(exc, 100)}); "

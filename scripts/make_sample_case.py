@@ -259,7 +259,7 @@ def command_line(args) -> str:
             f"--seed {args.seed} --around-level {args.around_level} --size-px {args.size_px}")
 
 
-def readme_text(args, truth: dict, sim, seconds: float, out: Path) -> str:
+def readme_text(args, truth: dict, sim, out: Path) -> str:
     """README.md of the sample case: provenance, licence, how it was made, what every file holds."""
     case, o = truth["sample_case"], sim.options
     visible = [n for n, lv in truth["levels"].items() if lv["visible"]]
@@ -281,7 +281,7 @@ def readme_text(args, truth: dict, sim, seconds: float, out: Path) -> str:
         trans=o.level_translation_rms_mm, bone=o.bone_contrast_factor, scatter=o.scatter_fraction,
         photons=o.photons_per_pixel, blur=o.detector_blur_sigma_mm, vignetting=o.vignetting,
         pincushion=o.pincushion_edge_mm, s_dist=o.s_distortion_edge_mm, wires=o.n_kwires, seed=args.seed,
-        seconds=seconds, sizes="\n".join(f"| `{p.name}` | {p.stat().st_size / 1e6:.2f} MB |"
+        sizes="\n".join(f"| `{p.name}` | {p.stat().st_size / 1e6:.2f} MB |"
                                           for p in sorted(out.iterdir()) if p.is_file() and p.name != "README.md"))
 
 
@@ -338,7 +338,7 @@ is known exactly. Every number below was written by the script that made the cas
    (`Logic.vertebrae.centroids_from_labels`; a vertebra touching the first or last slice is incomplete).
    Slicer Markups JSON. The centroids of the full-resolution labels are in `ground_truth.json`
    (`sample_case.centroids_full_resolution_lps_mm`) for comparison.
-6. The X-ray (`Logic.simulate.simulate_case`, seed {seed}, {seconds:.1f} s) is simulated from the source CT
+6. The X-ray (`Logic.simulate.simulate_case`, seed {seed}) is simulated from the source CT
    at full resolution (same crop), with the iodinated contrast of the heart and great vessels ({iodine}
    voxels of TotalSegmentator labels 51-68 above 80 HU) replaced by 40 HU blood: the preoperative CT is a
    contrast CT, the surgery image has no contrast agent. Its slices are refined linearly to 0.625 mm.
@@ -429,7 +429,7 @@ def main(argv=None) -> int:
                             "labels": {str(v): n for v, n in CARMREG_VERTEBRAE.items()
                                        if v in np.unique(vertebrae.hu)}}
     atomic_write_json(paths["ground_truth"], truth)
-    atomic_write_text(out / "README.md", readme_text(args, truth, sim, seconds, out))
+    atomic_write_text(out / "README.md", readme_text(args, truth, sim, out))
     visible = [lb for lb, ok in sim.visible.items() if ok]
     print(f"X-ray {options.size_px} in {seconds:.1f} s; pose {pose.as_dict()}; visible {visible}; "
           f"clicks {sim.clicks.labels}")

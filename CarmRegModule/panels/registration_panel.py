@@ -2,7 +2,8 @@
 
 Stages (method paper): ``database`` (coarse DRRs over Ty, Tz), ``spatial`` (similarity search -> Ty, Tz),
 ``depth`` (source-detector search on intervertebral distances -> Tx), ``fine`` (CMA-ES on the mPDE of the
-labelled centroids, 6 DOF), ``final_drr`` (full-resolution DRR at the found pose). mPDE = mean projection
+labelled centroids, 6 DOF), ``refine`` (image similarity + landmarks, 6 DOF), ``final_drr`` (full-resolution DRR
+at the found pose). mPDE = mean projection
 distance error on the detector, mm.
 """
 
@@ -14,12 +15,14 @@ from qtpy import QtCore, QtWidgets
 
 STAGE_TITLES = {"database": "1a  DRR database", "spatial": "1b  Spatial search (Ty, Tz)",
                 "depth": "2   Depth search (Tx)", "fine": "3   Fine search (6 DOF)",
-                "final_drr": "    Final DRR"}
-STAGE_WEIGHTS = {"database": 0.45, "spatial": 0.1, "depth": 0.05, "fine": 0.3, "final_drr": 0.1}
+                "refine": "4   Image refinement (6 DOF)", "final_drr": "    Final DRR"}
+STAGE_WEIGHTS = {"database": 0.45, "spatial": 0.1, "depth": 0.05, "fine": 0.1, "refine": 0.2, "final_drr": 0.1}
 
 
 class ConvergencePlot(QtWidgets.QWidget):
-    """Best mPDE (mm) against cost evaluations of the fine stage (matplotlib, log scale).
+    """mPDE (mm) of the best pose so far against cost evaluations of the fine stage (matplotlib).
+
+    The optimiser minimises mPDE plus a small rotation prior, so this curve may rise slightly.
 
     ``convergence`` entries are (evaluations, best mPDE mm, ...) as the fine stage records them."""
 
@@ -47,13 +50,13 @@ class ConvergencePlot(QtWidgets.QWidget):
             side.set_color("#8a8f96")
         ax.tick_params(colors="#c8ccd0", labelsize=7)
         ax.set_xlabel("cost evaluations", color="#c8ccd0", fontsize=8)
-        ax.set_ylabel("best mPDE (mm)", color="#c8ccd0", fontsize=8)
+        ax.set_ylabel("mPDE of best pose (mm)", color="#c8ccd0", fontsize=8)
         ax.set_title("Fine stage convergence", color="#e9ecef", fontsize=9)
         if self.points:
             e, m = zip(*self.points, strict=True)
             ax.plot(e, m, color="#3fa7ff", lw=1.6)
             ax.scatter([e[-1]], [m[-1]], color="#ffd43b", s=14, zorder=3)
-            if min(m) > 0:
+            if min(m) > 0 and max(m) / min(m) > 20:
                 ax.set_yscale("log")
             ax.annotate(f"{m[-1]:.2f} mm", (e[-1], m[-1]), textcoords="offset points", xytext=(-40, 8),
                         color="#ffd43b", fontsize=8)

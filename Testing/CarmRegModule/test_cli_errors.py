@@ -235,3 +235,18 @@ def test_real_process_installed_script_absurd_sdd(case):
         pytest.skip(f"the console script {script} is not installed (pip install -e .)")
     done = _subprocess([str(script), *register_args(case, sdd_mm=0)])
     assert_one_line_error(done.returncode, done.stderr, "source-to-detector distance 0.0 mm is not plausible")
+
+
+def test_real_process_library_warnings_stay_off_stderr(case):
+    """A non-conformant DICOM makes pydicom warn; the user still sees one line (the warning goes to meta)."""
+    ds = pydicom.dcmread(case["xray"])
+    del ds.DistanceSourceToDetector
+    ds.save_as(case["folder"] / "nosdd.dcm")
+    raw = (case["folder"] / "nosdd.dcm").read_bytes()
+    uid_at = raw.index(b"\x08\x00\x18\x00UI") + 8  # SOPInstanceUID value made invalid ("x.2.826...")
+    damaged = _write(case, "uid.dcm", raw[:uid_at] + b"x" + raw[uid_at + 1:])
+    with pytest.warns(UserWarning, match="Invalid value for VR UI"):
+        pydicom.dcmread(damaged).SOPInstanceUID  # noqa: B018 - the library does warn on this file
+    done = _subprocess([sys.executable, "-m", "CarmRegModule.cli", *register_args(case, xray=damaged)])
+    assert_one_line_error(done.returncode, done.stderr, "uid.dcm: the source-to-detector distance")
+    assert load_xray(damaged, sdd_mm=1000.0).meta["library_warnings"][0].startswith("Invalid value for VR UI")

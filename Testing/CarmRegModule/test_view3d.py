@@ -58,6 +58,7 @@ def test_offscreen_rendering_without_a_display(qapp):
         view.close_plotter()
 
 
+@pytest.mark.slow
 def test_interactive_view_under_a_display(qapp):
     from gui_case import make_volume
 

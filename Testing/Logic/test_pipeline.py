@@ -109,6 +109,7 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     assert result.ok and score["all_named_correctly"]
     assert score["max_unfitted_pde_pose_mm"] < 5.0
     assert [s for s, f in progress if f == 1.0] == list(STAGES)
+    assert {s.name: s.extra for s in result.stages}["refine"]["accepted"]
     paths = save_result(result, tmp_path, xray.pixels, clicks.as_dict())
     doc = json.loads(paths["result"].read_text())
     P = np.array(doc["projection_matrix"])
