@@ -177,7 +177,20 @@ def _print_report(result, seconds: float, out) -> None:
           f"carm.tfm ({seconds:.1f} s in all)")
 
 
+def _check_out_dir(out) -> None:
+    """Refuse an output folder that cannot be created or written, before any work is done."""
+    import os
+
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise CarmRegError(f"--out {out} is a file; give a folder for the results")
+    probe = path if path.exists() else next((p for p in path.parents if p.exists()), Path("."))
+    if not os.access(probe, os.W_OK):
+        raise CarmRegError(f"--out {out}: {probe} is not writable; choose another output folder")
+
+
 def cmd_register(args) -> int:
+    _check_out_dir(args.out)
     xray = _load_xray(args)
     result, _ = _register(args.ct, args.ct_landmarks, xray, args.xray_landmarks, args.out, _parameters(args),
                           args.series_uid)
@@ -190,6 +203,7 @@ def cmd_demo(args) -> int:
     from Logic.resources import sample_case
     from Logic.xray import load_xray
 
+    _check_out_dir(args.out)
     case = sample_case()
     print(f"CarmReg demo on the embedded sample case ({case['ct'].parent})")
     xray = load_xray(case["xray"])
@@ -213,6 +227,10 @@ def cmd_drr(args) -> int:
     from Logic.resources import sample_case
     from Logic.volume import MuPyramid
 
+    if not np.all(np.isfinite(args.pose)):
+        raise CarmRegError("--pose must be six finite numbers: tx ty tz (mm) rx ry rz (degrees)")
+    if not all(2 <= n <= 4096 for n in args.size_px):
+        raise CarmRegError("--size-px must be two numbers between 2 and 4096 (columns rows)")
     ct = load_volume(args.ct or sample_case()["ct"])
     if args.xray:
         xray = _load_xray(args)
@@ -272,7 +290,7 @@ def main(argv=None) -> int:
     try:
         return COMMANDS[args.command](args)
     except CarmRegError as exc:
-        print(f"carmreg: error: {exc}", file=sys.stderr)
+        print(f"carmreg: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("carmreg: interrupted", file=sys.stderr)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,17 +80,22 @@ def _load_cached(cache_dir, key: str, shape: tuple) -> np.ndarray | None:
         if meta.get("key") != key or tuple(meta.get("shape", ())) != shape:
             return None
         drrs = np.load(data_path, mmap_mode="r", allow_pickle=False)
-        if drrs.shape != shape or drrs.dtype != np.float32:
+        if drrs.shape != shape or drrs.dtype != np.float32 or not np.isfinite(drrs).all():
             return None
         return drrs
-    except (OSError, ValueError, json.JSONDecodeError, AttributeError, TypeError):
+    except (OSError, ValueError, EOFError, json.JSONDecodeError, AttributeError, TypeError):
         return None
 
 
 def _save_cached(cache_dir, key: str, drrs: np.ndarray) -> None:
+    """Write the cache; a cache that cannot be written costs only the next run's time (warning)."""
     data_path, meta_path = _cache_paths(cache_dir, key)
-    atomic_write(data_path, lambda tmp: np.save(tmp, drrs, allow_pickle=False))
-    atomic_write_json(meta_path, {"key": key, "shape": list(drrs.shape), "format": FORMAT_VERSION})
+    try:
+        atomic_write(data_path, lambda tmp: np.save(tmp, drrs, allow_pickle=False))
+        atomic_write_json(meta_path, {"key": key, "shape": list(drrs.shape), "format": FORMAT_VERSION})
+    except OSError as exc:
+        warnings.warn(f"could not write the DRR database cache in {cache_dir} ({exc.strerror or exc}); "
+                      "it will be rebuilt next time", stacklevel=3)
 
 
 def build_database(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,

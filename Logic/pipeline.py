@@ -227,8 +227,12 @@ class CarmRegLogic:
         level = state.pyramid.level(p.coarse_spacing_mm)
         intr = state.geometry.intrinsics.binned(state.coarse_factor)
         ty, tz = self._coarse_grid(state)
-        state.database = build_database(level, state.geometry, intr, ty, tz, 0.0, p.cache_dir,
-                                        progress=lambda f: self._report("database", min(f, 0.999), "rendering DRRs"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            state.database = build_database(level, state.geometry, intr, ty, tz, 0.0, p.cache_dir,
+                                            progress=lambda f: self._report("database", min(f, 0.999),
+                                                                            "rendering DRRs"))
+        state.warnings += [str(w.message) for w in caught]
         return {"drrs": int(len(ty) * len(tz)), "from_cache": state.database.from_cache,
                 "detector_px": list(intr.size_px), "key": state.database.key}
 
@@ -359,13 +363,14 @@ def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, pai
     outside = [lb for lb, inside in zip(ct_landmarks.labels, ct.contains_lps(ct_landmarks.points_lps_mm),
                                         strict=True) if not inside]
     if outside:
-        raise LandmarkError(f"CT landmark(s) {', '.join(outside)} lie outside the CT volume: check the "
-                            "landmark file's coordinate system (LPS vs RAS) and that it belongs to this CT")
+        raise LandmarkError(f"CT landmark(s) {', '.join(outside)} in {ct_landmarks.source or 'the CT landmarks'} "
+                            f"lie outside the CT volume {ct.source}: check the landmark file's coordinate system "
+                            "(LPS vs RAS) and that it belongs to this CT")
     cols, rows = xray.size_px
     off = [lb for lb, uv in zip(pairs.labels, pairs.uv_px, strict=True) if not _in_image(uv, (cols, rows))]
     if off:
-        raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image: "
-                            "check they are (column, row) pixels of this X-ray")
+        raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image "
+                            f"{xray.source}: check they are (column, row) pixels of this X-ray")
     for name, pts in (("CT", pairs.points_lps_mm), ("X-ray", pairs.uv_px)):
         d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
         if d.min() < 1.0:

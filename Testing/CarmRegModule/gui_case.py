@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from Logic.intensity_refine import RefineParameters
+
 LEVELS = ("T11", "T12", "L1", "L2", "L3")
 TRUE_POSE = (20.0, 6.0, -8.0, 1.0, 0.0, 0.0)
 
@@ -52,4 +54,7 @@ def make_volume():
 
 
 
-FAST_PARAMETERS = {"ty_half_range_mm": 16.0, "tz_half_range_mm": 24.0, "grid_step_mm": 4.0, "cache_dir": None}
+# Small search and no image refinement: these tests check the window's wiring on an exact synthetic case
+# (blobs, exact clicks), where the landmark stages alone recover the pose.
+FAST_PARAMETERS = {"ty_half_range_mm": 16.0, "tz_half_range_mm": 24.0, "grid_step_mm": 4.0, "cache_dir": None,
+                   "refine": RefineParameters(enabled=False)}
