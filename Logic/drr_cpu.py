@@ -17,8 +17,9 @@ Speed (the numbers are exact; only the order of work changes):
   follows the detector columns, so consecutive voxels of a ray and neighbouring rays of an image row share
   cache lines. The copy is made once per (level, layout) and cached (``clear_layout_cache`` frees it);
   MuLevel arrays are treated as immutable.
-- traversal: one running flat offset, the beam axis tested first (the common case), per-axis crossing
-  counters instead of bounds checks, float64 ray parameters, float32 voxels.
+- traversal: one running flat offset, the beam axis tested first (the common case) against one precomputed
+  limit, four beam-axis crossings per iteration when no other crossing intervenes, per-axis crossing
+  counters instead of bounds checks, float64 ray parameters and sums, float32 voxels.
 - empty space is not skipped: exact zero-run skipping along the beam axis was measured and saved nothing
   here (the extra table lookup per step cost as much as the skipped steps; CT air is noisy, not zero).
 - parallel over image rows of every image of a batch (numba prange); small jobs (a 64^2 DRR of the 4 mm
@@ -73,7 +74,10 @@ def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
     """Integral of mu over the ray parameter along s -> s + d (ijk units of a C-ordered (n0, n1, n2) grid).
 
     Returns sum_i mu_i * (parameter interval inside voxel i); multiply by |d| in mm for the line integral.
-    Axis 2 should be the axis the ray crosses most often: its crossing is tested first.
+    Axis 2 should be the axis the ray crosses most often: its crossing is tested first, and runs of four
+    such crossings are taken at once (segment lengths dtk, the same sum up to rounding, ~1e-7 relative).
+    Indices are kept inside the grid by per-axis crossing counters (no bounds checks; unsigned indexing
+    skips numba's negative-index wraparound).
     """
     t_in, t_out = _clip_axis(s0, d0, n0, 0.0, 1.0)
     t_in, t_out = _clip_axis(s1, d1, n1, t_in, t_out)
@@ -89,44 +93,48 @@ def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
     ck = n2 - 1 - k if sk > 0 else k
     step_i = si * n1 * n2
     step_j = sj * n2
-    off = (i * n1 + j) * n2 + k
+    off = (i * n1 + j) * n2 + k  # flat index of the current voxel, always inside the grid
     t = t_in
     acc = 0.0
+    lim = min(ti, tj, t_out)  # next event other than a beam-axis crossing
+    dtk3 = 3.0 * dtk
     while True:
-        if tk <= ti and tk <= tj:          # crossing along the contiguous (beam) axis: the common case
-            if tk >= t_out:
-                acc += flat[off] * (t_out - t)
-                break
-            acc += flat[off] * (tk - t)
+        if tk < lim:  # crossing along the contiguous (beam) axis: the common case
+            if ck >= 4 and tk + dtk3 < lim:  # four in a row: the three middle voxels are crossed fully
+                acc += flat[np.uint64(off)] * (tk - t) + dtk * (
+                    flat[np.uint64(off + sk)] + flat[np.uint64(off + 2 * sk)] + flat[np.uint64(off + 3 * sk)])
+                t = tk + dtk3
+                tk = t + dtk
+                ck -= 4
+                off += 4 * sk
+                continue
+            acc += flat[np.uint64(off)] * (tk - t)
             t = tk
             tk += dtk
             if ck == 0:
-                break
+                return acc
             ck -= 1
             off += sk
-        elif ti <= tj:
-            if ti >= t_out:
-                acc += flat[off] * (t_out - t)
-                break
-            acc += flat[off] * (ti - t)
+            continue
+        if lim >= t_out:  # no crossing before the exit: last segment
+            return acc + flat[np.uint64(off)] * (t_out - t)
+        if ti <= tj:
+            acc += flat[np.uint64(off)] * (ti - t)
             t = ti
             ti += dti
             if ci == 0:
-                break
+                return acc
             ci -= 1
             off += step_i
         else:
-            if tj >= t_out:
-                acc += flat[off] * (t_out - t)
-                break
-            acc += flat[off] * (tj - t)
+            acc += flat[np.uint64(off)] * (tj - t)
             t = tj
             tj += dtj
             if cj == 0:
-                break
+                return acc
             cj -= 1
             off += step_j
-    return acc
+        lim = min(ti, tj, t_out)
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")

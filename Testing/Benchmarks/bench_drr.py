@@ -403,7 +403,10 @@ NOTES = [
     "to run VTK through GLX instead of EGL).",
     "- CPU engine (`Logic/drr_cpu.py`): exact Siddon line integrals of the voxel model (tested against an "
     "independent Siddon to 1e-4 and against a slab to 1e-4). It traverses a transposed float32 copy of the "
-    "volume whose contiguous axis is the beam axis (made once per level, cached); parallel over image rows.",
+    "volume whose contiguous axis is the beam axis (made once per level, cached), four beam-axis voxels per "
+    "step when nothing else is crossed; parallel over image rows, small renders (64² at 4 mm) on the calling "
+    "thread. The 1-thread CPU-time column is hardly affected by other processes; when the 2-thread wall time "
+    "is not well below it, another process held the second core during the run.",
     "- VTK engine (`Logic/drr_vtk.py`): vtkOpenGLGPUVolumeRayCastMapper, additive blend, nearest sampling, the "
     "ray sum packed into 24 bits by a fragment-shader replacement (no 8-bit saturation), camera from the same "
     "K and extrinsics (explicit projection matrix). Without a display the VTK 9.7 pip wheel falls back to EGL "
