@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,16 +55,33 @@ def grid(half_range_mm: float, step_mm: float, center_mm: float = 0.0) -> np.nda
     return center_mm + step_mm * np.arange(-n, n + 1, dtype=np.float64)
 
 
-def database_key(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
-                 tz_mm: np.ndarray, tx_mm: float) -> str:
+def level_digest(level: MuLevel) -> str:
+    """SHA-256 of a mu level's voxels and affine (what the DRRs are rendered from)."""
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(level.mu_per_mm).tobytes())
     h.update(np.asarray(level.ijk_to_lps, np.float64).tobytes())
+    h.update(str(level.mu_per_mm.shape).encode())
+    return h.hexdigest()
+
+
+def source_digest(hu: np.ndarray, ijk_to_lps: np.ndarray, spacing_mm: float, mu_water_per_mm: float) -> str:
+    """SHA-256 of the CT (HU voxels, affine) and of how its coarse level is made (spacing, mu_water): it
+    identifies the level without computing it, so a cached database costs no resampling."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(hu).tobytes())
+    h.update(np.asarray(ijk_to_lps, np.float64).tobytes())
+    h.update(json.dumps([str(hu.dtype), list(hu.shape), float(spacing_mm), float(mu_water_per_mm)]).encode())
+    return h.hexdigest()
+
+
+def database_key(digest: str, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
+                 tz_mm: np.ndarray, tx_mm: float) -> str:
+    """Cache key: the volume digest, the geometry, the grid and the format version."""
+    h = hashlib.sha256(digest.encode())
     desc = {"v": FORMAT_VERSION, "sdd": intrinsics.sdd_mm, "px": list(intrinsics.pixel_spacing_mm),
             "size": list(intrinsics.size_px), "pp": list(intrinsics.principal_point_px),
             "iso": [float(x) for x in geometry.isocenter_lps_mm], "sod": geometry.sod_mm,
-            "ty": [float(x) for x in ty_mm], "tz": [float(x) for x in tz_mm], "tx": float(tx_mm),
-            "shape": list(level.mu_per_mm.shape)}
+            "ty": [float(x) for x in ty_mm], "tz": [float(x) for x in tz_mm], "tx": float(tx_mm)}
     h.update(json.dumps(desc, sort_keys=True).encode())
     return h.hexdigest()[:24]
 
@@ -98,19 +116,27 @@ def _save_cached(cache_dir, key: str, drrs: np.ndarray) -> None:
                       "it will be rebuilt next time", stacklevel=3)
 
 
-def build_database(level: MuLevel, geometry: CarmGeometry, intrinsics: CarmIntrinsics, ty_mm: np.ndarray,
-                   tz_mm: np.ndarray, tx_mm: float = 0.0, cache_dir: str | Path | None = None,
-                   progress=None, chunk: int = 256) -> DrrDatabase:
-    """Render (or load from cache) the database. ``progress(fraction)`` is called between chunks."""
+def build_database(level: MuLevel | Callable[[], MuLevel], geometry: CarmGeometry, intrinsics: CarmIntrinsics,
+                   ty_mm: np.ndarray, tz_mm: np.ndarray, tx_mm: float = 0.0, cache_dir: str | Path | None = None,
+                   progress=None, chunk: int = 256, digest: str | None = None) -> DrrDatabase:
+    """Render (or load from cache) the database. ``progress(fraction)`` is called between chunks.
+
+    ``level`` may be a callable that makes the mu level: with ``digest`` (``source_digest``) given, it is
+    called only when the cache misses.
+    """
     import time
 
     start = time.perf_counter()
-    key = database_key(level, geometry, intrinsics, ty_mm, tz_mm, tx_mm)
+    if digest is None:
+        level = level() if callable(level) else level
+        digest = level_digest(level)
+    key = database_key(digest, geometry, intrinsics, ty_mm, tz_mm, tx_mm)
     cols, rows = intrinsics.size_px
     shape = (len(ty_mm), len(tz_mm), rows, cols)
     cached = _load_cached(cache_dir, key, shape) if cache_dir else None
     if cached is not None:
         return DrrDatabase(ty_mm, tz_mm, tx_mm, cached, intrinsics, key, time.perf_counter() - start, True)
+    level = level() if callable(level) else level
     db = DrrDatabase(ty_mm, tz_mm, tx_mm, np.empty(0), intrinsics, key)
     poses = db.poses().reshape(-1, 6)
     flat = np.empty((len(poses), rows, cols), np.float32)

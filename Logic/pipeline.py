@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .camera import CarmGeometry, CarmPose, project
-from .database import DrrDatabase, build_database, grid
+from .database import DrrDatabase, build_database, grid, source_digest
 from .depth_search import DepthResult, depth_search, tx_limits
 from .drr_cpu import render_line_integrals
 from .errors import CancelledError, LandmarkError, RegistrationError
@@ -224,12 +224,13 @@ class CarmRegLogic:
 
     def _database(self, state: RegistrationState) -> dict:
         p = state.parameters
-        level = state.pyramid.level(p.coarse_spacing_mm)
         intr = state.geometry.intrinsics.binned(state.coarse_factor)
         ty, tz = self._coarse_grid(state)
+        digest = source_digest(state.ct.hu, state.ct.ijk_to_lps, p.coarse_spacing_mm, state.pyramid.mu_water_per_mm)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            state.database = build_database(level, state.geometry, intr, ty, tz, 0.0, p.cache_dir,
+            state.database = build_database(lambda: state.pyramid.level(p.coarse_spacing_mm), state.geometry, intr,
+                                            ty, tz, 0.0, p.cache_dir, digest=digest,
                                             progress=lambda f: self._report("database", min(f, 0.999),
                                                                             "rendering DRRs"))
         state.warnings += [str(w.message) for w in caught]
