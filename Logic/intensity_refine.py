@@ -57,7 +57,7 @@ class RefineResult:
 
 def _objective(level, geometry, intrinsics, poses, fixed, mask, points_lps_mm, uv_px, p: RefineParameters):
     drrs = render_line_integrals(level, geometry, poses, intrinsics)
-    score = similarity(p.metric, fixed, drrs, mask)
+    score = similarity(p.metric, fixed, drrs, mask, dtype=np.float64)  # float64: rankings repeat bit for bit
     P = geometry.projection_matrix(poses)
     pde = pde_mm(P, points_lps_mm, uv_px, geometry.intrinsics.pixel_spacing_mm)
     landmark = np.mean((pde / p.click_sd_mm) ** 2, axis=-1)

@@ -104,11 +104,16 @@ def _inner_mask(mask: np.ndarray) -> np.ndarray:
     return inner if inner.any() else mask
 
 
-def gi(fixed, moving, mask):
+def _paired_gradients(fixed, moving, mask):
+    """Column and row derivatives of both images at the pixels inside the (eroded) mask: (n or 1, m) each."""
     inner = _inner_mask(mask)
     fu, fv = _gradients(fixed[None], mask)
     mu, mv = _gradients(moving, mask)
-    fu, fv, mu, mv = (_masked(g, inner) for g in (fu, fv, mu, mv))
+    return tuple(_masked(g, inner) for g in (fu, fv, mu, mv))
+
+
+def gi(fixed, moving, mask):
+    fu, fv, mu, mv = _paired_gradients(fixed, moving, mask)
     fmag, mmag = np.hypot(fu, fv), np.hypot(mu, mv)
     cos = (fu * mu + fv * mv) / np.maximum(fmag * mmag, 1e-12)
     return np.mean((cos + 1.0) / 2.0 * np.minimum(fmag, mmag), axis=1)
@@ -122,10 +127,7 @@ def gc(fixed, moving, mask):
 
 
 def go(fixed, moving, mask):
-    inner = _inner_mask(mask)
-    fu, fv = _gradients(fixed[None], mask)
-    mu, mv = _gradients(moving, mask)
-    fu, fv, mu, mv = (_masked(g, inner) for g in (fu, fv, mu, mv))
+    fu, fv, mu, mv = _paired_gradients(fixed, moving, mask)
     fmag, mmag = np.hypot(fu, fv), np.hypot(mu, mv)
     cos2 = (fu * mu + fv * mv) ** 2 / np.maximum((fmag * mmag) ** 2, 1e-24)
     strong = (fmag > np.median(fmag)) & (mmag > np.median(mmag, axis=1, keepdims=True))
@@ -136,12 +138,16 @@ FUNCTIONS = {"gc": gc, "go": go, "ncc": ncc, "gi": gi, "mi": mi, "psnr": psnr, "
 
 
 def similarity(metric: str, fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None,
-               chunk: int = 512) -> np.ndarray:
-    """Scores (n,) of ``moving`` (n, h, w) against ``fixed`` (h, w); larger = more similar. Chunked for memory."""
+               chunk: int = 512, dtype=np.float32) -> np.ndarray:
+    """Scores (n,) of ``moving`` (n, h, w) against ``fixed`` (h, w); larger = more similar. Chunked for memory.
+
+    ``dtype`` float64 makes the scores reproducible across processes to ~1e-15 (float32 reductions in BLAS and
+    SIMD loops can round differently with memory alignment, which flips close rankings in an optimiser).
+    """
     if metric not in FUNCTIONS:
         raise ValueError(f"unknown metric {metric!r}; choose one of {', '.join(METRICS)}")
-    fixed = np.asarray(fixed, dtype=np.float32)
-    moving = np.asarray(moving, dtype=np.float32).reshape(-1, *fixed.shape)
+    fixed = np.asarray(fixed, dtype=dtype)
+    moving = np.asarray(moving, dtype=dtype).reshape(-1, *fixed.shape)
     mask = np.ones(fixed.shape, bool) if mask is None else np.asarray(mask, bool)
     out = [FUNCTIONS[metric](fixed, moving[i:i + chunk], mask) for i in range(0, len(moving), chunk)]
     return np.concatenate(out).astype(np.float64)
