@@ -202,13 +202,14 @@ class CarmRegLogic:
         if runner is None:
             raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
         self._report(name, 0.0, f"{name} started")
+        _drop_results_from(state, name)
         start = time.perf_counter()
         extra = runner(state) or {}
         pose = state.pose
         m = float(mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px)) \
             if name in ("spatial", "depth", "fine", "refine") else None
         stage = StageResult(name, CarmPose.from_array(pose), m, time.perf_counter() - start, extra)
-        state.stages = [s for s in state.stages if s.name != name] + [stage]
+        state.stages.append(stage)
         self._report(name, 1.0, f"{name} done" + (f": mPDE {m:.2f} mm" if m is not None else ""))
         return stage
 
@@ -268,7 +269,6 @@ class CarmRegLogic:
 
     def _refine(self, state: RegistrationState) -> dict:
         p = state.parameters
-        state.refined_pose = None
         if not p.refine.enabled:
             return {"enabled": False}
         start = state.pose
@@ -353,6 +353,17 @@ class CarmRegLogic:
         if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
             problems.append("the found source-to-detector position is outside the searched range")
         return problems
+
+
+def _drop_results_from(state: RegistrationState, name: str) -> None:
+    """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
+    later = STAGES[STAGES.index(name):]
+    fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
+              "refine": ("refine", "refined_pose"), "final_drr": ("drr_line_integral",)}
+    for stage in later:
+        for attribute in fields[stage]:
+            setattr(state, attribute, None)
+    state.stages = [s for s in state.stages if s.name not in later]
 
 
 def _in_image(uv: np.ndarray, size_px: tuple[int, int]) -> bool:

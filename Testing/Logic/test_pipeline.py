@@ -122,3 +122,16 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     assert doc["reproducibility"]["seed"] == result.parameters.fine.seed
     for key in ("overlay", "drr_png", "drr_nrrd", "tfm", "convergence"):
         assert paths[key].stat().st_size > 0
+
+
+def test_rerunning_a_stage_forgets_the_later_ones(sample, cache):
+    ct, _, centroids = sample
+    sim, xray = _simulated(sample, 1)
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    for name in STAGES:
+        logic.run_stage(state, name)
+    logic.run_stage(state, "fine")  # the user goes back one stage
+    assert state.refined_pose is None and state.drr_line_integral is None
+    assert [s.name for s in state.stages] == ["database", "spatial", "depth", "fine"]
+    assert np.array_equal(state.pose, state.fine.pose)
