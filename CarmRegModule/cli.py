@@ -108,6 +108,8 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
     p.add_argument("--all-metrics", action="store_true",
                    help="compute the similarity maps of all seven metrics (the chosen one still decides)")
+    p.add_argument("--no-level-check", action="store_true",
+                   help="skip the wrong-level check (registration redone with the labels shifted one level)")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -120,6 +122,7 @@ def _parameters(args):
     from Logic.resources import cache_dir
 
     params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics,
+                                    level_check=not args.no_level_check,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
     params.fine.seed = args.seed
     return params
@@ -171,6 +174,9 @@ def _print_report(result, seconds: float, out) -> None:
         for lv in in_image) + "   (* = clicked)")
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
+    if result.level_check:
+        print(f"level names: {result.level_check['status'].upper()} (image correlation as named minus the best "
+              f"one-level shift: {result.level_check['margin']:+.3f})")
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "

@@ -34,7 +34,7 @@ class WindowRegistration:
         try:
             return tuple(_registration_api().STAGES)
         except Exception:  # noqa: BLE001 - the panel still shows; running will report the problem
-            return ("database", "spatial", "depth", "fine", "refine", "final_drr")
+            return ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr")
 
     def _metrics(self) -> tuple[str, ...]:
         try:

@@ -12,6 +12,9 @@ Stages (each a plain function in its own module, returning a small result):
   refine    - beyond the paper: 6-DOF CMA-ES on gradient correlation with a landmark term
               (``intensity_refine``), which fixes the out-of-plane rotations and the magnification that three
               nearly collinear clicks cannot; its pose is kept only if the clicks still agree with it;
+  levels    - beyond the paper: the wrong-level check (``level_check``): the registration redone with the
+              clicked labels shifted one level up and down; the image says whether the names are confident,
+              ambiguous or contradicted;
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
@@ -34,6 +37,7 @@ from .errors import CancelledError, LandmarkError, RegistrationError
 from .fine_search import FineParameters, FineResult, fine_search
 from .intensity_refine import RefineParameters, RefineResult, intensity_refine
 from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label
+from .level_check import LevelCheck, LevelHypothesis, assess, fit_hypothesis, shifted_labels
 from .pde import mpde_mm, pde_mm
 from .similarity import METRICS
 from .spatial_search import SpatialResult, spatial_search
@@ -41,7 +45,7 @@ from .volume import MuPyramid, Volume
 from .xray import XrayImage
 from .xray_prep import attenuation, bin_image, bin_mask, coarse_factor, field_mask
 
-STAGES = ("database", "spatial", "depth", "fine", "refine", "final_drr")
+STAGES = ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr")
 
 
 @dataclass
@@ -59,6 +63,8 @@ class RegistrationParameters:
     fine: FineParameters = field(default_factory=FineParameters)
     refine: RefineParameters = field(default_factory=RefineParameters)
     refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
+    level_check: bool = True                # redo the registration with the labels shifted +-1 level
+    level_margin: float = 0.02              # GC difference that separates confident / ambiguous / contradicted
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
     default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
@@ -102,6 +108,7 @@ class RegistrationState:
     fine: FineResult | None = None
     refine: RefineResult | None = None
     refined_pose: np.ndarray | None = None
+    level_check: LevelCheck | None = None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -137,6 +144,7 @@ class RegistrationResult:
     warnings: list
     parameters: RegistrationParameters
     inputs: dict = field(default_factory=dict)
+    level_check: dict | None = None  # LevelCheck.as_dict(): status confident | ambiguous | contradicted
 
     @property
     def magnification(self) -> float:
@@ -198,7 +206,8 @@ class CarmRegLogic:
     # ------------------------------------------------------------------ stages
     def run_stage(self, state: RegistrationState, name: str) -> StageResult:
         runner = {"database": self._database, "spatial": self._spatial, "depth": self._depth,
-                  "fine": self._fine, "refine": self._refine, "final_drr": self._final_drr}.get(name)
+                  "fine": self._fine, "refine": self._refine, "levels": self._levels,
+                  "final_drr": self._final_drr}.get(name)
         if runner is None:
             raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
         self._report(name, 0.0, f"{name} started")
@@ -286,6 +295,32 @@ class CarmRegLogic:
                 "similarity_start": r.similarity_start, "similarity_end": r.similarity_end,
                 "refined_mpde_mm": r.mpde_mm}
 
+    def _levels(self, state: RegistrationState) -> dict:
+        p = state.parameters
+        if not p.level_check:
+            return {"enabled": False}
+        level = state.pyramid.level(p.refine.mu_spacing_mm)
+        args = (level, state.geometry)
+        common = (state.spatial.ty_mm, state.spatial.tz_mm, state.xray_line_integral, state.mask, p.fine, p.refine)
+        uv = state.pairs.uv_px
+        if state.refine is not None and state.refined_pose is not None:
+            named = LevelHypothesis(0, list(state.pairs.labels), state.refine.pose, state.refine.mpde_mm,
+                                    state.refine.similarity_end)
+        else:
+            named = fit_hypothesis(*args, state.pairs.points_lps_mm, uv, *common, 0, list(state.pairs.labels),
+                                   self._check_cancel)
+        ct = state.ct_landmarks.as_dict()
+        shifted = []
+        for shift in (-1, 1):
+            labels = shifted_labels(state.pairs.labels, shift, set(ct))
+            if labels is not None:
+                points = np.array([ct[lb] for lb in labels])
+                shifted.append(fit_hypothesis(*args, points, uv, *common, shift, labels, self._check_cancel))
+        state.level_check = assess(named, shifted, p.level_margin)
+        if state.level_check.status == "ambiguous":
+            state.warnings.append(state.level_check.message)
+        return {"enabled": True, **state.level_check.as_dict()}
+
     def _final_drr(self, state: RegistrationState) -> dict:
         intr = state.geometry.intrinsics
         cols, rows = intr.size_px
@@ -330,6 +365,7 @@ class CarmRegLogic:
             database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
             if state.database else {},
             ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
+            level_check=state.level_check.as_dict() if state.level_check else None,
             inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                     "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
 
@@ -349,6 +385,8 @@ class CarmRegLogic:
                             "spacing and the landmarks")
         if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
             problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
+        if state.level_check is not None and state.level_check.status == "contradicted":
+            problems.append(state.level_check.message)
         lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
         if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
             problems.append("the found source-to-detector position is outside the searched range")
@@ -359,7 +397,7 @@ def _drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
     fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
-              "refine": ("refine", "refined_pose"), "final_drr": ("drr_line_integral",)}
+              "refine": ("refine", "refined_pose"), "levels": ("level_check",), "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:
             setattr(state, attribute, None)

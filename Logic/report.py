@@ -1,7 +1,9 @@
 """Write a registration result: result.json, overlay, DRR (PNG + NRRD with geometry), .tfm, figures.
 
 Files (all written atomically into ``out_dir``):
-- ``result.json``: ``ok`` and ``warnings``; ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
+- ``result.json``: ``ok`` and ``warnings``; ``level_check`` (are the clicked level names confident, ambiguous
+  or contradicted by the image, see ``level_check``);
+  ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
   ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
   ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
@@ -56,6 +58,7 @@ def result_dict(result) -> dict:
         "stages": [{"name": s.name, "mpde_mm": s.mpde_mm, "seconds": round(s.seconds, 4),
                     "pose": s.pose.as_dict(), **_jsonable(s.extra)} for s in result.stages],
         "levels": result.levels,
+        "level_check": _jsonable(result.level_check),
         "parameters": _jsonable(result.parameters.as_dict()),
         "inputs": result.inputs,
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),

@@ -15,8 +15,10 @@ from qtpy import QtCore, QtWidgets
 
 STAGE_TITLES = {"database": "1a  DRR database", "spatial": "1b  Spatial search (Ty, Tz)",
                 "depth": "2   Depth search (Tx)", "fine": "3   Fine search (6 DOF)",
-                "refine": "4   Image refinement (6 DOF)", "final_drr": "    Final DRR"}
-STAGE_WEIGHTS = {"database": 0.45, "spatial": 0.1, "depth": 0.05, "fine": 0.1, "refine": 0.2, "final_drr": 0.1}
+                "refine": "4   Image refinement (6 DOF)", "levels": "5   Level-name check",
+                "final_drr": "    Final DRR"}
+STAGE_WEIGHTS = {"database": 0.35, "spatial": 0.05, "depth": 0.02, "fine": 0.05, "refine": 0.15, "levels": 0.3,
+                 "final_drr": 0.08}
 
 
 class ConvergencePlot(QtWidgets.QWidget):
@@ -229,6 +231,11 @@ class RegistrationPanel(QtWidgets.QWidget):
                 else "<b style='color:#ff8787'>Registration check failed</b>")
         text = head + (f" - fine mPDE {fine.mpde_mm:.2f} mm" if fine and fine.mpde_mm is not None else "")
         text += f", magnification {result.magnification:.2f}, {total:.1f} s in total."
+        check = getattr(result, "level_check", None)
+        if check:
+            colour = {"confident": "#69db7c", "ambiguous": "#ffa94d"}.get(check["status"], "#ff8787")
+            text += (f"<br>Level names: <b style='color:{colour}'>{check['status']}</b> "
+                     f"(image agreement as named vs one level off: {check['margin']:+.3f})")
         if result.warnings:
             text += "<ul style='margin-left:-20px'>" + "".join(f"<li style='color:#ffa94d'>{w}</li>"
                                                             for w in result.warnings) + "</ul>"

@@ -52,10 +52,10 @@ def simulate(ct, labels, centroids, seed: int, size_px: int):
     return sim, xray
 
 
-def run_case(ct, centroids, sim, xray, params):
+def run_case(ct, centroids, sim, xray, params, clicks=None):
     logic = CarmRegLogic()
     t0 = time.perf_counter()
-    result = logic.register(ct, centroids, xray, sim.clicks, params)
+    result = logic.register(ct, centroids, xray, clicks or sim.clicks, params)
     total = time.perf_counter() - t0
     truth = sim.ground_truth()
     fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
@@ -64,12 +64,26 @@ def run_case(ct, centroids, sim, xray, params):
     fine_pose = next(s.pose for s in result.stages if s.name == "fine")
     landmark_score = evaluate(result.geometry.projection_matrix(fine_pose), centroids.as_dict(), truth, fitted)
     return {"seed": sim.seed, "ok": result.ok, "total_s": total, "stages": stages, "score": score,
-            "landmark_score": landmark_score,
+            "landmark_score": landmark_score, "level_check": result.level_check,
             "pose_true": sim.pose.as_dict(), "pose_found": result.pose.as_dict(),
             "spatial_per_metric": stages["spatial"]["per_metric"]}
 
 
-def summarize(rows: list[dict], free_rows: list[dict]) -> str:
+def shifted_clicks(sim, centroids, shift: int = 1):
+    """The same clicks with every label moved one level caudally (T10, T11, T12 -> T11, T12, L1)."""
+    from Logic.landmarks import Landmarks2D
+    from Logic.level_check import shifted_labels
+
+    labels = shifted_labels(sim.clicks.labels, shift, set(centroids.labels))
+    return None if labels is None else Landmarks2D(labels, sim.clicks.uv_px, "shifted")
+
+
+def _status_counts(rows: list[dict]) -> str:
+    statuses = [(r["level_check"] or {}).get("status", "off") for r in rows]
+    return ", ".join(f"{name} {statuses.count(name)}" for name in ("confident", "ambiguous", "contradicted"))
+
+
+def summarize(rows: list[dict], free_rows: list[dict], shifted_rows: list[dict] = ()) -> str:
     def med(values):
         return float(np.median(values)) if len(values) else float("nan")
 
@@ -87,8 +101,9 @@ def summarize(rows: list[dict], free_rows: list[dict]) -> str:
         "|---|---|---|---|",
     ]
     paper = {"database": "(preoperative)", "spatial": "20.41 mm, ~10 s coarse", "depth": "12.18 mm",
-             "fine": "0.36 mm, ~15 s", "refine": "(not in the paper)", "final_drr": "~90 s"}
-    for name in ("database", "spatial", "depth", "fine", "refine", "final_drr"):
+             "fine": "0.36 mm, ~15 s", "refine": "(not in the paper)", "levels": "(not in the paper)",
+             "final_drr": "~90 s"}
+    for name in ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr"):
         m = [r["stages"][name]["mpde_mm"] for r in rows if r["stages"][name]["mpde_mm"] is not None]
         s = [r["stages"][name]["seconds"] if name != "spatial" else
              r["stages"][name]["seconds_by_metric"][r["stages"][name]["metric"]] for r in rows]
@@ -96,7 +111,9 @@ def summarize(rows: list[dict], free_rows: list[dict]) -> str:
         lines.append(f"| {name} | {ms} | {med(s):.2f} ({max(s):.2f}) | {paper[name]} |")
     totals = [r["total_s"] - sum(v for k, v in r["stages"]["spatial"]["seconds_by_metric"].items()
                                  if k != r["stages"]["spatial"]["metric"]) for r in rows]
-    lines += [f"| **whole registration** (database cached) | | {med(totals):.2f} ({max(totals):.2f}) | ~2 min |", ""]
+    core = [t - r["stages"]["levels"]["seconds"] for t, r in zip(totals, rows, strict=True)]
+    lines += [f"| **whole registration** (database cached), without / with the level check | | {med(core):.2f} "
+              f"({max(core):.2f}) / {med(totals):.2f} ({max(totals):.2f}) | ~2 min |", ""]
     named = sum(r["score"]["all_named_correctly"] for r in rows)
     success = np.mean(unfitted < 5.0) * 100
     lines += [
@@ -113,7 +130,11 @@ def summarize(rows: list[dict], free_rows: list[dict]) -> str:
         f"| same, landmark stages only | {sum(r['landmark_score']['all_named_correctly'] for r in rows)} / "
         f"{len(rows)} |",
         f"| cases passing the pipeline's own checks (`ok`) | {sum(r['ok'] for r in rows)} / {len(rows)} |",
+        f"| level check, labels as clicked (correct) | {_status_counts(rows)} |",
     ]
+    if shifted_rows:
+        lines.append(f"| level check, every label one level off (wrong) | {_status_counts(shifted_rows)}; "
+                     f"reported `ok` {sum(r['ok'] for r in shifted_rows)} / {len(shifted_rows)} |")
     if free_rows:
         free = np.concatenate([r["score"]["unfitted_pde_pose_mm"] for r in free_rows])
         lines.append(f"| same, fine stage unanchored (no prior, wide bounds): median / max | {med(free):.2f} / "
@@ -132,23 +153,29 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("Testing/Benchmarks"))
     parser.add_argument("--cache-dir", default="/tmp/carmreg-bench-cache")
     parser.add_argument("--unanchored", action="store_true", help="also run the fine stage without anchoring")
+    parser.add_argument("--shifted", action="store_true", help="also run with every label one level off")
     args = parser.parse_args(argv)
     ct, labels, centroids = load_case()
     params = RegistrationParameters(cache_dir=args.cache_dir, all_metrics=True)
     free_params = RegistrationParameters(cache_dir=args.cache_dir, all_metrics=True, fine=FineParameters(
         rotation_weight_mm_per_deg2=0.0, bounds=(200, 200, 200, 90, 90, 90), sigma=(10, 3, 3, 20, 20, 20)))
-    rows, free_rows = [], []
+    rows, free_rows, shifted_rows = [], [], []
     for seed in range(args.cases):
         sim, xray = simulate(ct, labels, centroids, seed, args.size_px)
         row = run_case(ct, centroids, sim, xray, params)
         rows.append(row)
         if args.unanchored:
             free_rows.append(run_case(ct, centroids, sim, xray, free_params))
+        wrong = shifted_clicks(sim, centroids) if args.shifted else None
+        if wrong is not None:
+            shifted_rows.append(run_case(ct, centroids, sim, xray, params, wrong))
+            print(f"         labels one level off: {shifted_rows[-1]['level_check']['status']}", flush=True)
         s = row["score"]
         print(f"case {seed:2d}: fine mPDE {row['stages']['fine']['mpde_mm']:.2f} mm, unfitted max "
               f"{s['max_unfitted_pde_pose_mm']:.2f} mm, named {'ok' if s['all_named_correctly'] else 'WRONG'}, "
-              f"{row['total_s']:.2f} s (db {row['stages']['database']['seconds']:.2f} s)", flush=True)
-    table = summarize(rows, free_rows)
+              f"{row['total_s']:.2f} s (db {row['stages']['database']['seconds']:.2f} s), levels "
+              f"{(row['level_check'] or {}).get('status')}", flush=True)
+    table = summarize(rows, free_rows, shifted_rows)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results_registration.md").write_text(table)
     (args.out / "results_registration.json").write_text(json.dumps(rows, indent=1, default=float))

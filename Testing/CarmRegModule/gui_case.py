@@ -57,4 +57,4 @@ def make_volume():
 # Small search and no image refinement: these tests check the window's wiring on an exact synthetic case
 # (blobs, exact clicks), where the landmark stages alone recover the pose.
 FAST_PARAMETERS = {"ty_half_range_mm": 16.0, "tz_half_range_mm": 24.0, "grid_step_mm": 4.0, "cache_dir": None,
-                   "refine": RefineParameters(enabled=False)}
+                   "refine": RefineParameters(enabled=False), "level_check": False}

@@ -36,7 +36,7 @@ def test_register_shows_every_ct_level_on_the_overlay_and_recovers_the_pose(wind
         assert np.hypot(markers[label].x - uv[0], markers[label].y - uv[1]) < 0.5  # px
     # per-stage figures and the convergence plot
     mpde = window.registration_panel.mpde_by_stage()
-    assert set(mpde) == {"database", "spatial", "depth", "fine", "refine", "final_drr"}
+    assert set(mpde) == {"database", "spatial", "depth", "fine", "refine", "levels", "final_drr"}
     assert mpde["fine"] < 0.1 and mpde["spatial"] < 20.0
     assert len(window.registration_panel.plot.points) > 5
     assert window.result_panel.table.rowCount() == 5
@@ -57,7 +57,7 @@ def test_stage_by_stage_gives_the_same_result_and_fills_the_table_row_by_row(win
     _load_case(window, synthetic_case)
     panel = window.registration_panel
     seen = []
-    for expected in ("database", "spatial", "depth", "fine", "refine", "final_drr"):
+    for expected in ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr"):
         assert panel.next_stage() == expected
         window.run_next_stage(wait=True)
         seen.append(list(panel.mpde_by_stage()))
