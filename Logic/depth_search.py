@@ -53,12 +53,12 @@ def tx_limits(geometry: CarmGeometry, min_magnification: float = 1.05,
 
 def depth_search(geometry: CarmGeometry, ty_mm: float, tz_mm: float, points_lps_mm: np.ndarray,
                  uv_px: np.ndarray, far_mm: float = 400.0, step_mm: float = 10.0,
-                 recenter: bool = True) -> DepthResult:
+                 recenter: bool = True, magnification_range: tuple = (1.05, 3.0)) -> DepthResult:
     """Scan tx from -far_mm toward the patient in ``step_mm`` steps, then refine; see module docstring."""
     start = time.perf_counter()
     spacing = np.asarray(geometry.intrinsics.pixel_spacing_mm, float)
     target = _consecutive_lengths(np.asarray(uv_px, float), spacing)
-    lo, hi = tx_limits(geometry)
+    lo, hi = tx_limits(geometry, *magnification_range)
     lo = max(lo, -far_mm)
     scan = np.arange(lo, hi + 1e-9, step_mm)
 

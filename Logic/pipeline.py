@@ -265,7 +265,8 @@ class CarmRegLogic:
     def _depth(self, state: RegistrationState) -> dict:
         p = state.parameters
         state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
-                                   state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm)
+                                   state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm,
+                                   magnification_range=p.magnification_range)
         return {"tx_mm": state.depth.tx_mm, "ty_mm": state.depth.ty_mm, "tz_mm": state.depth.tz_mm,
                 "magnification": state.depth.magnification,
                 "intervertebral_cost_mm": state.depth.cost_mm}

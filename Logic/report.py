@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from . import __version__
-from .atomic import atomic_write, atomic_write_bytes, atomic_write_json
+from .atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from .camera import pixel_to_detector_lps
 
 FITTED_RGB = (40, 220, 90)
@@ -56,27 +56,15 @@ def result_dict(result) -> dict:
                      "isocenter_lps_mm": list(g.isocenter_lps_mm), "sod_mm": g.sod_mm,
                      "sources": dict(result.inputs.get("geometry_sources", {}))},
         "stages": [{"name": s.name, "mpde_mm": s.mpde_mm, "seconds": round(s.seconds, 4),
-                    "pose": s.pose.as_dict(), **_jsonable(s.extra)} for s in result.stages],
+                    "pose": s.pose.as_dict(), **to_jsonable(s.extra)} for s in result.stages],
         "levels": result.levels,
-        "level_check": _jsonable(result.level_check),
-        "parameters": _jsonable(result.parameters.as_dict()),
+        "level_check": to_jsonable(result.level_check),
+        "parameters": to_jsonable(result.parameters.as_dict()),
         "inputs": result.inputs,
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
                             "numpy": np.__version__, "scipy": scipy.__version__, "cma": cma.__version__,
                             "numba": numba.__version__, "seed": result.parameters.fine.seed},
     }
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
 
 
 def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5, 99.5)) -> np.ndarray:

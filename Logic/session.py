@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_json
+from .atomic import atomic_write_json, to_jsonable
 from .errors import InputFileError, LandmarkError
 from .landmarks import Landmarks2D, Landmarks3D, level_index
 
@@ -92,11 +92,11 @@ class Session:
             "version": FORMAT_VERSION,
             "saved_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "data": {"ct": _path_entry(self.ct_path, base), "xray": _path_entry(self.xray_path, base)},
-            "geometry_overrides": _jsonable(self.geometry_overrides),
-            "landmarks": {"ct": _jsonable(_sorted_points(self.ct_points)),
-                          "xray": _jsonable(_sorted_points(self.xray_points))},
-            "parameters": _jsonable(self.parameters),
-            "last_result": _jsonable(self.last_result),
+            "geometry_overrides": to_jsonable(self.geometry_overrides),
+            "landmarks": {"ct": to_jsonable(_sorted_points(self.ct_points)),
+                          "xray": to_jsonable(_sorted_points(self.xray_points))},
+            "parameters": to_jsonable(self.parameters),
+            "last_result": to_jsonable(self.last_result),
         }
 
     @classmethod
@@ -128,13 +128,13 @@ class Session:
 
 def summarize_result(result, out_dir: str | Path | None = None) -> dict:
     """A small JSON summary of a RegistrationResult for the session record (pose, P, mPDE, per level)."""
-    stages = [{"name": s.name, "mpde_mm": _jsonable(s.mpde_mm), "seconds": _jsonable(s.seconds)}
+    stages = [{"name": s.name, "mpde_mm": to_jsonable(s.mpde_mm), "seconds": to_jsonable(s.seconds)}
               for s in getattr(result, "stages", [])]
-    levels = [{k: _jsonable(v) for k, v in lv.items() if k in ("label", "uv_px", "fitted", "pde_mm")}
+    levels = [{k: to_jsonable(v) for k, v in lv.items() if k in ("label", "uv_px", "fitted", "pde_mm")}
               for lv in getattr(result, "levels", [])]
-    pose = result.pose.as_dict() if hasattr(result.pose, "as_dict") else _jsonable(result.pose)
+    pose = result.pose.as_dict() if hasattr(result.pose, "as_dict") else to_jsonable(result.pose)
     return {"ok": bool(getattr(result, "ok", False)), "pose": pose,
-            "projection_matrix": _jsonable(np.asarray(result.projection_matrix)),
+            "projection_matrix": to_jsonable(np.asarray(result.projection_matrix)),
             "stages": stages, "levels": levels, "warnings": list(getattr(result, "warnings", [])),
             "out_dir": str(out_dir) if out_dir else None}
 
@@ -272,20 +272,3 @@ def _check_xray_points(points, where: str) -> list[dict]:
             raise InputFileError(f"{where}: X-ray landmark {i + 1} needs \"uv_px\": [column, row]") from None
         out.append({"label": p.get("label") or None, "uv_px": uv})
     return out
-
-
-def _jsonable(obj):
-    """numpy scalars/arrays and tuples -> plain JSON types (recursively)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
