@@ -61,7 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--ct", required=True, help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
     reg.add_argument("--ct-landmarks", required=True, help="CT centroids (.mrk.json or JSON), named by level")
     reg.add_argument("--xray", required=True, help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
-    reg.add_argument("--xray-landmarks", required=True, help="X-ray centroids (.mrk.json or JSON), by level")
+    clicks = reg.add_mutually_exclusive_group(required=True)
+    clicks.add_argument("--xray-landmarks", help="X-ray centroids: .mrk.json (points named by level, or unnamed: "
+                        "CarmReg names them), JSON {\"T12\": [column, row]} or unnamed [[column, row], ...]")
+    clicks.add_argument("--no-clicks", action="store_true",
+                        help="no X-ray centroids: identify the levels in view from the image alone")
     reg.add_argument("--out", required=True, help="output folder")
     reg.add_argument("--series-uid", help="SeriesInstanceUID to read when the CT folder holds several series")
     _registration_args(reg)
@@ -69,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run the whole pipeline on the embedded sample case")
     demo.add_argument("--out", default="carmreg-out", help="output folder (default: ./carmreg-out)")
+    demo.add_argument("--clicks", choices=("named", "unnamed", "none"), default="named",
+                      help="use the sample's X-ray clicks as named (default), without their names (CarmReg names "
+                      "them), or none (levels from the image alone)")
     _registration_args(demo)
 
     drr = sub.add_parser("drr", help="render a DRR of a CT at a C-arm pose to PNG and NRRD")
@@ -109,7 +116,8 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--all-metrics", action="store_true",
                    help="compute the similarity maps of all seven metrics (the chosen one still decides)")
     p.add_argument("--no-level-check", action="store_true",
-                   help="skip the wrong-level check (registration redone with the labels shifted one level)")
+                   help="named clicks: skip the wrong-level check (registration redone with the names shifted "
+                   "+-1 and +-2 levels); unnamed clicks are always identified")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -144,21 +152,33 @@ def _load_xray(args):
                      sod_mm=args.sod_mm, frame=args.frame)
 
 
-def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None):
+def _xray_clicks(xray, xray_lm_path, clicks: str = "named"):
+    """The X-ray clicks: from the file (``clicks`` named), with their names dropped (unnamed), or none."""
+    from Logic.landmarks import Landmarks2D, read_landmarks_2d
+
+    if xray_lm_path is None or clicks == "none":
+        return Landmarks2D([], np.zeros((0, 2)), "no clicks")
+    lm = read_landmarks_2d(xray_lm_path, xray.intrinsics.pixel_spacing_mm if xray.intrinsics else None)
+    return Landmarks2D([None] * len(lm.labels), lm.uv_px, lm.source) if clicks == "unnamed" else lm
+
+
+def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None, clicks="named"):
     from Logic.io_volume import load_volume
-    from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
+    from Logic.landmarks import read_landmarks_3d
     from Logic.pipeline import CarmRegLogic
     from Logic.report import save_result
 
     t0 = time.perf_counter()
     ct = load_volume(ct_path, series_uid=series_uid)
     ct_lm = read_landmarks_3d(ct_lm_path)
-    xray_lm = read_landmarks_2d(xray_lm_path, xray.intrinsics.pixel_spacing_mm if xray.intrinsics else None)
+    xray_lm = _xray_clicks(xray, xray_lm_path, clicks)
     print(f"CT {Path(ct_path).name}: {ct.shape} voxels, {np.round(ct.spacing_mm, 3).tolist()} mm; "
           f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px; "
-          f"levels CT {', '.join(ct_lm.labels)}; X-ray {', '.join(str(x) for x in xray_lm.labels)}")
+          f"levels CT {', '.join(ct_lm.labels)}; X-ray clicks "
+          f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
-    paths = save_result(result, out, xray.pixels, xray_lm.as_dict(), xray.bone_dark)
+    clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
+    paths = save_result(result, out, xray.pixels, clicked, xray.bone_dark)
     _print_report(result, time.perf_counter() - t0, out)
     return result, paths
 
@@ -175,12 +195,28 @@ def _print_report(result, seconds: float, out) -> None:
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
     if result.level_check:
-        print(f"level names: {result.level_check['status'].upper()} (image correlation as named minus the best "
-              f"one-level shift: {result.level_check['margin']:+.3f})")
+        print(level_summary(result.level_check))
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
           f"carm.tfm ({seconds:.1f} s in all)")
+
+
+def level_summary(check: dict) -> str:
+    """The levels stage in two lines: which names, from what, how sure (margin = score of the best other
+    labelling minus the chosen one's; the objective is 1 - gradient correlation + landmark terms)."""
+    mode = check.get("mode")
+    if mode == "image_only":
+        what = f"levels in view (from the image alone): {', '.join(check.get('visible_labels') or []) or 'none'}"
+    elif mode == "named":
+        what = f"clicked names {', '.join(check.get('assigned_labels') or [])} checked against shifted names"
+    else:
+        what = f"clicks named {', '.join(check.get('assigned_labels') or [])} ({mode.replace('_', ' ')})"
+    runner = check.get("runner_up_labels")
+    margin = check.get("margin")
+    sure = f"{check['status'].upper()}, margin {margin:+.3f}" if margin is not None else check["status"].upper()
+    return (f"level identification: {what}\n  {sure}" + (f" over {', '.join(runner)}" if runner else "")
+            + f": {check.get('message', '')}")
 
 
 def _check_out_dir(out) -> None:
@@ -199,13 +235,13 @@ def cmd_register(args) -> int:
     _check_out_dir(args.out)
     xray = _load_xray(args)
     result, _ = _register(args.ct, args.ct_landmarks, xray, args.xray_landmarks, args.out, _parameters(args),
-                          args.series_uid)
+                          args.series_uid, "none" if args.no_clicks else "named")
     return EXIT_OK if result.ok else EXIT_CHECKS_FAILED
 
 
 def cmd_demo(args) -> int:
     from Logic.evaluation import evaluate
-    from Logic.landmarks import read_landmarks_3d
+    from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
     from Logic.resources import sample_case
     from Logic.xray import load_xray
 
@@ -214,12 +250,18 @@ def cmd_demo(args) -> int:
     print(f"CarmReg demo on the embedded sample case ({case['ct'].parent})")
     xray = load_xray(case["xray"])
     result, _ = _register(case["ct"], case["ct_landmarks"], xray, case["xray_landmarks"], args.out,
-                          _parameters(args))
+                          _parameters(args), clicks=args.clicks)
     if case["ground_truth"].is_file():
         truth = json.loads(case["ground_truth"].read_text())
         centroids = read_landmarks_3d(case["ct_landmarks"]).as_dict()
         fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
         score = evaluate(result.projection_matrix, centroids, truth, fitted)
+        true_clicked = read_landmarks_2d(case["xray_landmarks"]).labels
+        assigned = (result.level_check or {}).get("assigned_labels")
+        if args.clicks == "unnamed" and assigned is not None:
+            right = assigned == list(true_clicked)
+            print(f"clicks named {', '.join(assigned)}; the sample's true names are {', '.join(true_clicked)}: "
+                  f"{'right' if right else 'WRONG'}")
         print("against the simulation's ground truth (levels not clicked): " + ", ".join(
             f"{r['label']} {r['pde_pose_mm']:.1f} mm" for r in score["levels"] if not r["fitted"]))
         print(f"every visible level named correctly: {'yes' if score['all_named_correctly'] else 'NO'}")

@@ -72,6 +72,9 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self._dirty = False
         self._reg_state = None
         self._worker = None  # RegistrationWorker while a registration runs
+        self._accepting_names = False  # True while "Accept assigned names" renames the clicks
+        self._input_click_ids: list[int] = []  # X-ray point ids in the order the registration got them
+        self.assigned_names: dict[int, str] = {}  # X-ray point id -> level assigned by the last result
         self.inputs_version = 0  # bumped on every change of data, geometry or landmarks
         self.parameter_overrides: dict = {}  # RegistrationParameters fields forced by scripts and tests
         self.undo_stack = QtGui.QUndoStack(self)
@@ -136,10 +139,13 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
             "Ctrl+wheel: zoom, right-drag: window/level, middle-drag: pan.",
             "Position LPS (mm)", propose=True)
         self.xray_panel = LandmarkPanel(
-            self.xray_store, "Label the same vertebrae on the X-ray",
+            self.xray_store, "Click the vertebrae on the X-ray",
             "Click on the centre of each vertebral body. Wheel: zoom, middle-drag or Shift+drag: pan, "
-            "right-drag: contrast. Name at least 3 levels that are also labelled on the CT.",
-            "(u, v) px")
+            "right-drag: contrast. Name at least 3 levels that are also labelled on the CT, or untick "
+            "'Name the levels' and click at least 3 vertebrae: CarmReg then identifies the levels from the "
+            "image (you may name only those you are sure of). With no clicks at all it identifies them from "
+            "the image alone.",
+            "(u, v) px", allow_unnamed=True)
         self.registration_panel = RegistrationPanel(self._stages(), self._metrics())
         self.result_panel = ResultPanel(self.overlay_view)
         for panel in (self.ct_panel, self.xray_panel):
@@ -259,6 +265,8 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self.registration_panel.reset_requested.connect(self.reset_registration)
         self.result_panel.export_requested.connect(self._action_export_result)
         self.result_panel.overlay_png_requested.connect(self._action_overlay_png)
+        self.result_panel.accept_names_requested.connect(self._action_accept_names)
+        self.xray_store.naming_changed.connect(self.act_name_levels.setChecked)
         self.step_tabs.currentChanged.connect(self._step_changed)
 
     # =========================================================================================== data
@@ -414,8 +422,9 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self._points3d_timer.start()
         self._inputs_changed(reset_overlay=False)
         if self.result is not None:
-            self.overlay_view.clicks = self.xray_store.to_landmarks().as_dict()
+            self.overlay_view.clicks = self.shown_clicks()
             self.overlay_view.refresh_markers()
+        self._update_accept_names()
 
     def _ct_selected(self, point_id) -> None:
         point = self.ct_store.get(point_id) if point_id is not None else None
@@ -474,10 +483,13 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         if self._reg_state is not None and not self.is_running():
             self._reg_state = None
             self.registration_panel.reset()
-        if self.result is not None and not self.result_stale:
+        if self._accepting_names:
+            pass  # the clicks now carry the names this result assigned: it still describes them
+        elif self.result is not None and not self.result_stale:
             self.result_stale = True
             self.overlay_view.summary = "inputs changed since this result: register again"
             self.overlay_view.viewport().update()
+            self.clear_assigned_names()  # the assigned names describe clicks that have changed
         self._update_readiness()
         self._mark_dirty()
 
@@ -489,15 +501,40 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
             missing.append("an X-ray")
         elif self.xray.intrinsics is None:
             missing.append("the X-ray geometry (step 1)")
-        common = sorted(set(self.ct_store.labels()) & set(self.xray_store.labels()),
-                        key=lambda lb: self.ct_store.labels().index(lb))
-        if len(common) < 3:
+        mode = self.xray_click_mode()
+        ct_names = self.ct_store.labels()
+        common = [lb for lb in ct_names if lb in set(self.xray_store.labels())]
+        n_clicks, min_clicks = len(self.xray_store), self.min_xray_clicks()
+        if mode == "named" and len(common) < 3:
             missing.append(f"at least 3 levels named on both CT and X-ray (now {len(common)}"
-                           + (f": {', '.join(common)}" if common else "") + ")")
+                           + (f": {', '.join(common)}" if common else "") + ")"
+                           + (", or X-ray clicks left unnamed ('Name the levels' off) for CarmReg to identify"
+                              if n_clicks >= min_clicks else ""))
+        elif mode != "named" and len(ct_names) < 3:
+            missing.append(f"at least 3 named CT centroids (now {len(ct_names)})")
+        if mode in ("unnamed", "partly_named") and n_clicks < min_clicks:
+            missing.append(f"at least {min_clicks} X-ray clicks, named or not (now {n_clicks}), or none to "
+                           "identify the levels from the image alone")
         if missing:
-            self.registration_panel.set_ready(False, "Needs " + "; ".join(missing) + ".")
+            self.registration_panel.set_ready(False, "Needs " + "; ".join(missing) + ".", mode)
         else:
-            self.registration_panel.set_ready(True, f"Ready: {len(common)} levels on both ({', '.join(common)}).")
+            self.registration_panel.set_ready(True, self._ready_text(mode, common), mode)
+
+    def _ready_text(self, mode: str, common: list[str]) -> str:
+        """The ready line: what will be registered and which level identification runs."""
+        n, unnamed = len(self.xray_store), self.xray_store.unnamed_count()
+        named = self.xray_store.labels()
+        if mode == "named":
+            return (f"Ready: {len(common)} levels on both ({', '.join(common)}). Level names given: the image "
+                    "checks them (mode: named).")
+        if mode == "partly_named":
+            return (f"Ready: {n} X-ray clicks, {n - unnamed} named ({', '.join(named)}) and {unnamed} unnamed: "
+                    "CarmReg names the unnamed clicks from the image (mode: partly named).")
+        if mode == "unnamed":
+            return (f"Ready: {n} unnamed X-ray clicks: CarmReg identifies their levels from the image "
+                    "(mode: unnamed).")
+        return ("Ready: no X-ray clicks: CarmReg identifies the levels from the image alone (mode: image only; "
+                "slower and less sure than with clicks).")
 
     def _clean_changed(self, _clean: bool) -> None:
         self._update_title()

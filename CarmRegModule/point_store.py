@@ -4,6 +4,10 @@ Two stores exist: CT centroids (``dim == 3``, positions LPS mm) and X-ray centro
 (u, v) detector px). One level name per vertebra: placing a level that is already there moves it. Edits go
 through undo commands pushed on a shared QUndoStack, so Ctrl+Z undoes placing, moving (one command per drag),
 renaming and deleting alike. ``changed`` fires after every change (views redraw, the window autosaves).
+
+Unnamed points: with ``naming`` off (X-ray only: "Name the levels" unticked) a click places a point with label
+None; the logic then identifies its level. Unnamed points are shown as ``?1``, ``?2``, ... numbered along the
+spine, top of the image first (X-ray: row v increasing; CT: LPS z decreasing, i.e. head first).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ class PointStore(QtCore.QObject):
     changed = QtCore.Signal()
     selection_changed = QtCore.Signal(object)   # point id or None
     pending_level_changed = QtCore.Signal(str)
+    naming_changed = QtCore.Signal(bool)
 
     def __init__(self, name: str, dim: int, undo_stack: QtGui.QUndoStack, parent=None):
         super().__init__(parent)
@@ -45,13 +50,27 @@ class PointStore(QtCore.QObject):
         self._next_id = 1
         self.selected: int | None = None
         self.pending_level = "T12"
+        self.naming = True  # False: a click places an unnamed point (label None)
 
     # ------------------------------------------------------------------------------------- queries
     def points(self) -> list[Point]:
-        """Points ordered head to sacrum (unnamed last)."""
+        """Named points head to sacrum, then the unnamed ones along the spine (``?1``, ``?2``, ...)."""
         def key(p: Point):
-            return (0, level_index(p.label), p.id) if p.label else (1, 0, p.id)
+            return (0, level_index(p.label), 0.0, p.id) if p.label else (1, 0, self._spine_key(p), p.id)
         return sorted(self._points.values(), key=key)
+
+    def unnamed_numbers(self) -> dict[int, int]:
+        """{point id: k} of the unnamed points, k = 1, 2, ... along the spine, top of the image first."""
+        unnamed = [p for p in self.points() if not p.label]
+        return {p.id: k for k, p in enumerate(unnamed, start=1)}
+
+    def display_name(self, point_id: int) -> str:
+        """The level name, or ``?k`` for the k-th unnamed point (see ``unnamed_numbers``)."""
+        point = self._points[point_id]
+        return point.label or f"?{self.unnamed_numbers().get(point_id, 0)}"
+
+    def unnamed_count(self) -> int:
+        return sum(1 for p in self._points.values() if not p.label)
 
     def get(self, point_id: int) -> Point | None:
         return self._points.get(point_id)
@@ -76,6 +95,12 @@ class PointStore(QtCore.QObject):
                 return LEVEL_NAMES[i]
         return name
 
+    def set_naming(self, on: bool) -> None:
+        """Name the levels on click (on) or place unnamed points (off)."""
+        if bool(on) != self.naming:
+            self.naming = bool(on)
+            self.naming_changed.emit(self.naming)
+
     def set_pending_level(self, label: str) -> None:
         label = normalize_level_name(label)
         if label != self.pending_level:
@@ -84,7 +109,13 @@ class PointStore(QtCore.QObject):
 
     # ------------------------------------------------------------------------------------- edits (undoable)
     def place(self, position) -> int:
-        """Place the pending level at ``position``; if that level exists, move it there. Returns its id."""
+        """Place the pending level at ``position``; if that level exists, move it there. Returns its id.
+
+        With ``naming`` off: always a new unnamed point; the pending level stays as it is."""
+        if not self.naming:
+            point_id = self.add(None, position)
+            self.select(point_id)
+            return point_id
         label = self.pending_level
         existing = self.find(label)
         if existing is not None:
@@ -132,6 +163,20 @@ class PointStore(QtCore.QObject):
                                 "first")
         self.undo_stack.push(_RenamePoint(self, point_id, point.label, label))
 
+    def rename_many(self, labels: dict[int, str | None], text: str = "Rename points") -> None:
+        """Rename several points in one undo step ({point id: new label or None}); the names after the change
+        must be unique (swaps are allowed). Ids that no longer exist are ignored."""
+        new = {pid: (normalize_level_name(lb) if lb else None) for pid, lb in labels.items() if pid in self._points}
+        new = {pid: lb for pid, lb in new.items() if lb != self._points[pid].label}
+        if not new:
+            return
+        after = [new.get(p.id, p.label) for p in self._points.values()]
+        dup = sorted({lb for lb in after if lb and after.count(lb) > 1}, key=level_index)
+        if dup:
+            raise LandmarkError(f"{', '.join(dup)} would be placed twice on the {self.name}; delete or rename the "
+                                "other point first")
+        self.undo_stack.push(_RenameMany(self, {pid: self._points[pid].label for pid in new}, new, text))
+
     def remove(self, point_id: int) -> None:
         if point_id in self._points:
             self.undo_stack.push(_RemovePoint(self, self._points[point_id]))
@@ -173,6 +218,11 @@ class PointStore(QtCore.QObject):
         return [{"label": p.label, key: [float(x) for x in p.position]} for p in self.points()]
 
     # ------------------------------------------------------------------------------------- internals
+    def _spine_key(self, point: Point) -> float:
+        """Position along the spine, head first: X-ray row v (top of the image first); CT -z (LPS +z is
+        superior); the id breaks ties."""
+        return float(point.position[1]) if self.dim == 2 else -float(point.position[2])
+
     def _vec(self, position) -> np.ndarray:
         v = np.asarray(position, dtype=np.float64).reshape(-1)
         if v.shape != (self.dim,) or not np.all(np.isfinite(v)):
@@ -196,6 +246,13 @@ class PointStore(QtCore.QObject):
 
     def _set_label(self, point_id: int, label: str | None) -> None:
         self._points[point_id].label = label
+        self.changed.emit()
+
+    def _set_labels(self, labels: dict[int, str | None]) -> None:
+        for pid, label in labels.items():
+            if pid in self._points:
+                self._points[pid].label = label
+        self._refresh_pending()
         self.changed.emit()
 
     def _set_all(self, points: list[Point]) -> None:
@@ -279,6 +336,18 @@ class _RenamePoint(QtGui.QUndoCommand):
 
     def undo(self):
         self.store._set_label(self.point_id, self.old)
+
+
+class _RenameMany(QtGui.QUndoCommand):
+    def __init__(self, store: PointStore, old: dict, new: dict, text: str):
+        super().__init__(f"{text} ({store.name})")
+        self.store, self.old, self.new = store, dict(old), dict(new)
+
+    def redo(self):
+        self.store._set_labels(self.new)
+
+    def undo(self):
+        self.store._set_labels(self.old)
 
 
 class _ReplaceAll(QtGui.QUndoCommand):

@@ -67,6 +67,13 @@ class WindowActions:
                                 "Left click places the level shown in the picker")
         self.act_place.setCheckable(True)
         self.act_place.setChecked(True)
+        self.act_name_levels = action("&Name the X-ray levels", lambda on: self.xray_store.set_naming(on), "N",
+                                      "Off: X-ray clicks stay unnamed and CarmReg identifies their levels")
+        self.act_name_levels.setCheckable(True)
+        self.act_name_levels.setChecked(True)
+        self.act_accept_names = action("&Accept assigned level names", self._action_accept_names, None,
+                                       "Name the X-ray clicks as the level identification assigned them")
+        self.act_accept_names.setEnabled(False)
         self.act_register = action("&Register", self._action_register, "Ctrl+R",
                                    "Run every registration stage", icon.SP_MediaPlay)
         self.act_cancel = action("&Cancel registration", self.cancel_registration, "Esc",
@@ -83,7 +90,7 @@ class WindowActions:
                   self.act_shot_view, None, self.act_quit):
             file_menu.addSeparator() if a is None else file_menu.addAction(a)
         edit_menu = menu.addMenu("&Edit")
-        for a in (self.act_undo, self.act_redo, None, self.act_delete, self.act_place):
+        for a in (self.act_undo, self.act_redo, None, self.act_delete, self.act_place, self.act_name_levels):
             edit_menu.addSeparator() if a is None else edit_menu.addAction(a)
         view_menu = menu.addMenu("&View")
         for i, title in enumerate(STEPS):
@@ -95,6 +102,8 @@ class WindowActions:
         reg_menu = menu.addMenu("&Registration")
         reg_menu.addAction(self.act_register)
         reg_menu.addAction(self.act_cancel)
+        reg_menu.addSeparator()
+        reg_menu.addAction(self.act_accept_names)
         help_menu = menu.addMenu("&Help")
         help_menu.addAction(self.act_keys)
         help_menu.addAction(self.act_about)
@@ -217,6 +226,10 @@ class WindowActions:
         self.run_registration()
 
     @report_errors
+    def _action_accept_names(self, *_):
+        self.accept_assigned_names(ask=True)
+
+    @report_errors
     def _action_next_stage(self, *_):
         self.run_next_stage()
 
@@ -259,14 +272,16 @@ class WindowActions:
 
 
 KEYS_HELP = """Slice and X-ray views
-  Left click: place the level shown in the picker (moves it if already placed)
+  Left click: place the level shown in the picker (moves it if already placed);
+              X-ray with "Name the levels" off: an unnamed click (?1, ?2, ... from the top)
   Left drag on a point: move it        Right click on a point: rename / delete
   Delete: delete the selected point    Esc: clear the selection
   Right drag: window / level            Middle drag or Shift+left drag: pan
   Wheel: next/previous slice (CT), zoom (X-ray)    Ctrl+wheel: zoom (CT)
   Up/Down, PageUp/PageDown: slices      F: fit the image
 Window
-  Ctrl+1..5: workflow steps   P: place mode   B / T: bone / soft-tissue window
+  Ctrl+1..5: workflow steps   P: place mode   N: name the X-ray levels (off: unnamed clicks)
+  B / T: bone / soft-tissue window
   Ctrl+Z / Ctrl+Shift+Z: undo / redo   Ctrl+S: save session   Ctrl+R: register
   F12: screenshot of the window        Shift+F12: screenshot of the current view"""
 

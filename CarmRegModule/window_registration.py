@@ -3,6 +3,11 @@
 Stage by stage: the first ``run_next_stage`` prepares a state with ``CarmRegLogic.prepare``; each call runs one
 stage on a worker thread; after the last stage ``CarmRegLogic.result`` builds the RegistrationResult. Any
 change of data, geometry or landmarks drops the prepared state (the stages must be run again).
+
+Level identification: the X-ray clicks go to the logic named, partly named, unnamed (label None) or not at all
+(``xray_click_mode``). The result's ``level_check["assigned_labels"]`` names each click in the order the logic got
+them; the window keeps the point ids of that order, so the views show ``?1 → T11`` and "Accept assigned names"
+renames exactly those points (one undo step).
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ class WindowRegistration:
         try:
             return tuple(_registration_api().STAGES)
         except Exception:  # noqa: BLE001 - the panel still shows; running will report the problem
-            return ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr")
+            return ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
 
     def _metrics(self) -> tuple[str, ...]:
         try:
@@ -52,7 +57,26 @@ class WindowRegistration:
         if self.xray.intrinsics is None:
             raise GeometryError("the X-ray geometry is incomplete: choose a device preset or enter the SDD and "
                                 "pixel spacing (step 1)")
+        self._input_click_ids = [p.id for p in self.xray_store.points()]  # the order of to_landmarks()
         return self.ct_volume, self.ct_store.to_landmarks(), self.xray, self.xray_store.to_landmarks()
+
+    def min_xray_clicks(self) -> int:
+        """Fewest X-ray clicks the logic registers with (``Logic.pipeline.MIN_CLICKS`` when it says, else 3,
+        the rule of ``pipeline._given_pairs``); zero clicks is allowed too (image only)."""
+        try:
+            return int(getattr(_registration_api(), "MIN_CLICKS", 3))
+        except Exception:  # noqa: BLE001 - the logic failed to import: running will report it
+            return 3
+
+    def xray_click_mode(self) -> str:
+        """Level identification the X-ray clicks ask for: ``named`` (every click named), ``partly_named``,
+        ``unnamed`` (no click named) or ``image_only`` (no clicks)."""
+        n, unnamed = len(self.xray_store), self.xray_store.unnamed_count()
+        if n == 0:
+            return "image_only"
+        if unnamed == 0:
+            return "named"
+        return "unnamed" if unnamed == n else "partly_named"
 
     def registration_parameters(self):
         from Logic.resources import cache_dir
@@ -141,6 +165,7 @@ class WindowRegistration:
                 self.result_stale = True
                 self.overlay_view.summary = "inputs changed during the run: register again"
                 self.overlay_view.viewport().update()
+                self.clear_assigned_names()
         else:
             self.registration_panel.set_running(False)
 
@@ -171,15 +196,18 @@ class WindowRegistration:
         self.registration_finished.emit(self.result is not None and not self.result_stale)
 
     def set_result(self, result) -> None:
-        """Show a RegistrationResult: overlay, per-level PDE, stage figures, C-arm in 3D."""
+        """Show a RegistrationResult: overlay, per-level PDE, level identification, stage figures, C-arm in 3D."""
         self.result, self.result_stale = result, False
-        clicks = self.xray_store.to_landmarks().as_dict()
+        clicks = self.shown_clicks()
         fine = next((s for s in result.stages if s.name == "fine"), None)
         summary = (f"mPDE {fine.mpde_mm:.2f} mm   " if fine and fine.mpde_mm is not None else "") + \
                   f"magnification {result.magnification:.2f}" + ("" if result.ok else "   CHECK FAILED")
         self.overlay_view.set_result(self.xray.pixels, self.xray.bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary)
-        self.result_panel.set_result(result)
+        ids = self._result_click_ids(result)
+        self._show_assigned(result, ids)
+        self.result_panel.set_result(result, [self.xray_store.display_name(pid) for pid in ids])
+        self._update_accept_names()
         self.registration_panel.set_result(result)
         g = result.geometry
         self.view3d_result.set_points([(p.label, p.position) for p in self.ct_store.points() if p.label])
@@ -189,11 +217,99 @@ class WindowRegistration:
         self.set_step(4)
         self.result_ready.emit(result)
 
+    # =========================================================================================== level names
+    def shown_clicks(self) -> dict:
+        """{name as shown ('T11', '?1'): (u, v) px} of every X-ray click, for the overlay."""
+        return {self.xray_store.display_name(p.id): p.position.copy() for p in self.xray_store.points()}
+
+    def _result_click_ids(self, result) -> list[int]:
+        """Point ids of the clicks ``level_check["assigned_labels"]`` names, in its order: the clicks as given
+        to the logic, less the named ones without a CT centroid (the logic leaves those out of the level
+        identification, as it does when pairing by name)."""
+        ids = [pid for pid in self._input_click_ids if self.xray_store.get(pid) is not None]
+        if len(ids) != len(self.xray_store):  # not from this window's inputs (scripts): the current order
+            ids = [p.id for p in self.xray_store.points()]
+        n = len((getattr(result, "level_check", None) or {}).get("assigned_labels") or [])
+        if n and n != len(ids):
+            ct = set(self.ct_store.labels())
+            kept = [pid for pid in ids if self.xray_store.get(pid).label in ct or not self.xray_store.get(pid).label]
+            ids = kept if len(kept) == n else ids
+        return ids
+
+    def _show_assigned(self, result, click_ids: list[int]) -> None:
+        """Map ``level_check["assigned_labels"]`` onto the clicks and show it in the X-ray view and panel."""
+        check = (getattr(result, "level_check", None) or {}) if result is not None else {}
+        labels = list(check.get("assigned_labels") or [])
+        matched = len(labels) == len(click_ids)
+        self.assigned_names = {pid: lb for pid, lb in zip(click_ids, labels, strict=True) if lb} if matched else {}
+        if labels and not matched:
+            LOG.warning("level check assigned %d names to %d clicks: not shown", len(labels), len(click_ids))
+        self.xray_view.set_assigned(self.assigned_names, check.get("status"))
+        self.xray_panel.set_assigned(self.assigned_names)
+
+    def clear_assigned_names(self) -> None:
+        self._show_assigned(None, [])
+        self._update_accept_names()
+
+    def names_to_accept(self) -> dict[int, str]:
+        """{point id: assigned level} of the clicks whose name would change on accepting."""
+        out = {}
+        for pid, label in self.assigned_names.items():
+            point = self.xray_store.get(pid)
+            if point is not None and point.label != label:
+                out[pid] = label
+        return out
+
+    def _update_accept_names(self) -> None:
+        if not hasattr(self, "act_accept_names"):
+            return
+        reason = ""
+        if self.result is not None and self.result_stale:
+            reason = "The clicks changed since this result: register again"
+        elif self.result is None or not self.assigned_names:
+            reason = "No level names were assigned: register first"
+        elif not self.names_to_accept():
+            reason = "The clicks already carry the assigned names"
+        self.act_accept_names.setEnabled(not reason)
+        self.result_panel.set_accept_enabled(not reason, reason)
+
+    def accept_assigned_names(self, ask: bool = True) -> dict[int, str]:
+        """Name the X-ray clicks as the level identification assigned them (one undo step); returns the
+        renamed {point id: level}. Unless confident, asks first when ``ask``."""
+        if self.result is not None and self.result_stale:
+            raise RegistrationError("the X-ray clicks changed since this result: register again before accepting "
+                                    "its level names")
+        if self.result is None or not self.assigned_names:
+            raise RegistrationError("there are no assigned level names to accept: register first (step 4)")
+        changes = self.names_to_accept()
+        if not changes:
+            return {}
+        check = self.result.level_check or {}
+        status = check.get("status")
+        if ask and status != "confident":
+            names = ", ".join(self.assigned_names.values())
+            choice = self.dialogs.question(
+                "CarmReg - level names",
+                f"The level identification is {str(status).upper()}: {check.get('message', '')}\n\n"
+                f"Name the clicks {names} anyway?", ("Accept anyway", "Cancel"))
+            if choice != "Accept anyway":
+                return {}
+        self._accepting_names = True
+        try:
+            self.xray_store.rename_many(changes, "Accept assigned level names")
+        finally:
+            self._accepting_names = False
+        self._update_accept_names()
+        LOG.info("accepted assigned level names %s (%s)", changes, status)
+        self.statusBar().showMessage(f"X-ray clicks named {', '.join(changes.values())} ({status}); Ctrl+Z undoes",
+                                     8000)
+        return changes
+
     def export_result(self, out_dir: str | Path) -> dict:
         """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
-        clicks = self.xray_store.to_landmarks().as_dict()
+        clicks = self.shown_clicks()
         paths = _registration_api().CarmRegLogic().save_result(
             self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
         if self.last_result_summary is not None:

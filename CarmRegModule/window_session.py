@@ -86,6 +86,7 @@ class WindowSession:
         self.result, self.last_result_summary, self.session_path = None, None, None
         self.overlay_view.clear()
         self.result_panel.set_result(None)
+        self.clear_assigned_names()
         self.view3d_result.set_carm(None, None)
         self.reset_registration()
         self._dirty = False

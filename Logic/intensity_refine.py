@@ -8,8 +8,14 @@ where the surgeon put them::
 
     f(p) = (1 - GC(p)) + w_lm * mean_i (PDE_i(p) / s_click)^2 + w_rot * sum_k (theta_k / 10 deg)^2
 
-with PDE in detector mm and ``s_click`` the expected clicking error (detector mm). Whole populations are
-rendered in one batch. Bounded to +- ``bounds`` about the start, seeded (repeatable).
+with PDE in detector mm and ``s_click`` the expected clicking error (detector mm); without clicks the landmark
+term is 0. Whole populations are rendered in one batch. Bounded to +- ``bounds`` about the start, seeded
+(repeatable).
+
+The pipeline runs it twice: a wide coarse pass (``level_identify.coarse_refine_parameters``: 4 mm, large steps,
+800 evaluations; it also scores each level labelling) and this module's default, a local pass at 3 mm on
+~2 mm pixels. On 8 realistic simulated cases the median projection distance of the levels not clicked fell
+from 2.5 mm (one local pass) to 1.4 mm (coarse + local, landmark weights 0.003 and 0.002).
 """
 
 from __future__ import annotations
@@ -35,12 +41,12 @@ class RefineParameters:
     mu_spacing_mm: float = 3.0
     detector_pixel_mm: float = 2.0
     popsize: int = 12
-    max_evaluations: int = 480
-    sigma: tuple = (6.0, 1.5, 1.5, 1.5, 2.0, 2.0)       # mm, deg
-    bounds: tuple = (40.0, 10.0, 10.0, 6.0, 10.0, 10.0)  # +- about the landmark pose
-    landmark_weight: float = 0.02
+    max_evaluations: int = 360
+    sigma: tuple = (4.0, 1.0, 1.0, 1.0, 1.5, 1.5)       # mm, deg
+    bounds: tuple = (40.0, 10.0, 10.0, 6.0, 10.0, 10.0)  # +- about the start pose
+    landmark_weight: float = 0.002
     click_sd_mm: float = 1.5
-    rotation_weight: float = 0.01
+    rotation_weight: float = 0.002
     seed: int = 1
 
 
@@ -49,19 +55,22 @@ class RefineResult:
     pose: np.ndarray
     similarity_start: float
     similarity_end: float
-    mpde_mm: float
+    mpde_mm: float                      # clicked mPDE at ``pose`` (nan without clicks)
     evaluations: int
     convergence: list = field(default_factory=list)
     seconds: float = 0.0
+    objective_end: float = float("nan")
 
 
 def _objective(level, geometry, intrinsics, poses, fixed, mask, points_lps_mm, uv_px, p: RefineParameters):
     drrs = render_line_integrals(level, geometry, poses, intrinsics)
     score = similarity(p.metric, fixed, drrs, mask, dtype=np.float64)  # float64: rankings repeat bit for bit
+    rotation = np.sum((poses[:, 3:] / 10.0) ** 2, axis=1)
+    if len(points_lps_mm) == 0:
+        return (1.0 - score) + p.rotation_weight * rotation, score, np.full(len(poses), np.nan)
     P = geometry.projection_matrix(poses)
     pde = pde_mm(P, points_lps_mm, uv_px, geometry.intrinsics.pixel_spacing_mm)
     landmark = np.mean((pde / p.click_sd_mm) ** 2, axis=-1)
-    rotation = np.sum((poses[:, 3:] / 10.0) ** 2, axis=1)
     return (1.0 - score) + p.landmark_weight * landmark + p.rotation_weight * rotation, score, pde.mean(axis=-1)
 
 
@@ -97,10 +106,10 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         if f[i] < best[0]:
             best = (float(f[i]), float(s[i]), population[i].copy())
         result.convergence.append((es.countevals, best[0], best[1]))
-    result.pose = best[2]
-    result.similarity_end = best[1]
+    result.objective_end, result.similarity_end, result.pose = best
     P = geometry.projection_matrix(result.pose)
-    result.mpde_mm = float(pde_mm(P, points_lps_mm, uv_px, intr.pixel_spacing_mm).mean())
+    result.mpde_mm = float(pde_mm(P, points_lps_mm, uv_px, intr.pixel_spacing_mm).mean()) \
+        if len(points_lps_mm) else float("nan")
     result.evaluations = es.countevals + 1
     result.seconds = time.perf_counter() - t0
     return result

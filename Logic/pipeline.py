@@ -7,14 +7,19 @@
 Stages (each a plain function in its own module, returning a small result):
   database  - DRRs of the 4 mm mu level over a (ty, tz) grid at tx = 0 (``database``, Algorithm 1), cached;
   spatial   - similarity of the coarse X-ray with every DRR -> (ty, tz) (``spatial_search``, Algorithm 2);
+  levels    - beyond the paper: which vertebra is which (``level_identify``). Every plausible labelling of the
+              clicks (unnamed clicks: every run of consecutive CT levels; named clicks: the names and the names
+              shifted +-1, +-2 levels) is registered and scored by image similarity and landmark fit; the
+              winner names unnamed clicks, and the margin to the runner-up says confident / ambiguous (or
+              contradicted, when the surgeon's names lose). Without clicks the spatial map's peaks are refined
+              on the image alone and the levels in view are named;
   depth     - intervertebral distances -> tx, magnification (``depth_search``, Algorithm 3);
   fine      - anchored CMA-ES on the mPDE -> 6-DOF pose (``fine_search``, Algorithm 4);
   refine    - beyond the paper: 6-DOF CMA-ES on gradient correlation with a landmark term
-              (``intensity_refine``), which fixes the out-of-plane rotations and the magnification that three
-              nearly collinear clicks cannot; its pose is kept only if the clicks still agree with it;
-  levels    - beyond the paper: the wrong-level check (``level_check``): the registration redone with the
-              clicked labels shifted one level up and down; the image says whether the names are confident,
-              ambiguous or contradicted;
+              (``intensity_refine``), a wide coarse pass (4 mm; reused from the levels stage, which ran the
+              same computation for the chosen labelling) then a local one (3 mm); it fixes the out-of-plane
+              rotations and the magnification that three nearly collinear clicks cannot; its pose is kept only
+              if the clicks still agree with it;
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
@@ -25,7 +30,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,8 +41,15 @@ from .drr_cpu import render_line_integrals
 from .errors import CancelledError, LandmarkError, RegistrationError
 from .fine_search import FineParameters, FineResult, fine_search
 from .intensity_refine import RefineParameters, RefineResult, intensity_refine
-from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label
-from .level_check import LevelCheck, LevelHypothesis, assess, fit_hypothesis, shifted_labels
+from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label, spine_order_warnings
+from .level_identify import (
+    IdentifyContext,
+    IdentifyParameters,
+    LevelIdentification,
+    coarse_refine_parameters,
+    identify_from_image,
+    identify_levels,
+)
 from .pde import mpde_mm, pde_mm
 from .similarity import METRICS
 from .spatial_search import SpatialResult, spatial_search
@@ -45,7 +57,8 @@ from .volume import MuPyramid, Volume
 from .xray import XrayImage
 from .xray_prep import attenuation, bin_image, bin_mask, coarse_factor, field_mask
 
-STAGES = ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr")
+STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
+MIN_CLICKS = 3  # X-ray clicks needed (named or not); zero clicks = levels from the image alone
 
 
 @dataclass
@@ -61,10 +74,11 @@ class RegistrationParameters:
     depth_far_mm: float = 400.0             # farthest source retreat (paper: 40-50 cm)
     depth_step_mm: float = 10.0             # paper: 10 mm
     fine: FineParameters = field(default_factory=FineParameters)
+    refine_coarse: RefineParameters = field(default_factory=coarse_refine_parameters)
     refine: RefineParameters = field(default_factory=RefineParameters)
     refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
-    level_check: bool = True                # redo the registration with the labels shifted +-1 level
-    level_margin: float = 0.02              # GC difference that separates confident / ambiguous / contradicted
+    level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
+    identify: IdentifyParameters = field(default_factory=IdentifyParameters)
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
     default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
@@ -73,8 +87,10 @@ class RegistrationParameters:
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
-        d["fine"] = dict(self.fine.__dict__)
-        d["refine"] = dict(self.refine.__dict__)
+        for name in ("fine", "refine", "refine_coarse"):
+            d[name] = dict(getattr(self, name).__dict__)
+        d["identify"] = {k: (dict(v.__dict__) if hasattr(v, "__dict__") else v)
+                         for k, v in self.identify.__dict__.items()}
         return d
 
 
@@ -97,7 +113,7 @@ class RegistrationState:
     xray_landmarks: Landmarks2D
     parameters: RegistrationParameters
     geometry: CarmGeometry
-    pairs: Pairs
+    pairs: Pairs | None                     # None until the levels stage names unnamed clicks (or no clicks)
     pyramid: MuPyramid
     xray_line_integral: np.ndarray
     mask: np.ndarray
@@ -108,7 +124,8 @@ class RegistrationState:
     fine: FineResult | None = None
     refine: RefineResult | None = None
     refined_pose: np.ndarray | None = None
-    level_check: LevelCheck | None = None
+    identification: LevelIdentification | None = None
+    given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -122,6 +139,8 @@ class RegistrationState:
             return self.fine.pose
         if self.depth is not None:
             return np.array([self.depth.tx_mm, self.depth.ty_mm, self.depth.tz_mm, 0, 0, 0], float)
+        if self.identification is not None and self.identification.mode == "image_only":
+            return np.asarray(self.identification.winner.pose, float)
         if self.spatial is not None:
             return np.array([self.database.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
         return np.zeros(6)
@@ -133,7 +152,8 @@ class RegistrationResult:
     projection_matrix: np.ndarray
     geometry: CarmGeometry
     stages: list
-    levels: list                    # [{"label", "uv_px", "fitted", "pde_mm"}] for every CT-labelled level
+    levels: list                    # [{"label", "uv_px", "fitted", "pde_mm", "in_image", "clicked_uv_px",
+    #                                  "name_margin"}] for every CT-labelled level
     drr_line_integral: np.ndarray | None
     xray_line_integral: np.ndarray
     convergence: list
@@ -144,7 +164,7 @@ class RegistrationResult:
     warnings: list
     parameters: RegistrationParameters
     inputs: dict = field(default_factory=dict)
-    level_check: dict | None = None  # LevelCheck.as_dict(): status confident | ambiguous | contradicted
+    level_check: dict | None = None  # LevelIdentification.as_dict(): mode, status, margin, assigned_labels ...
 
     @property
     def magnification(self) -> float:
@@ -182,18 +202,15 @@ class CarmRegLogic:
         if intrinsics.size_px != xray.size_px:
             raise RegistrationError(f"the geometry's detector size {intrinsics.size_px} px differs from the "
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            pairs = pair_by_label(ct_landmarks, xray_landmarks)
-        notes = [str(w.message) for w in caught]
-        _check_landmarks(ct, ct_landmarks, xray, pairs)
+        pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
+        _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
         geometry = CarmGeometry(intrinsics, tuple(float(x) for x in ct.center_lps_mm()), float(sod))
         mask = field_mask(xray.pixels, xray.bone_dark)
         line_integral = attenuation(xray.pixels, mask, xray.bone_dark)
         factor = coarse_factor(intrinsics.pixel_spacing_mm, params.coarse_spacing_mm)
         return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs,
-                                 MuPyramid(ct), line_integral, mask, factor, warnings=notes)
+                                 MuPyramid(ct), line_integral, mask, factor, given_pairs=pairs, warnings=notes)
 
     def register(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
                  parameters: RegistrationParameters | None = None) -> RegistrationResult:
@@ -216,7 +233,7 @@ class CarmRegLogic:
         extra = runner(state) or {}
         pose = state.pose
         m = float(mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px)) \
-            if name in ("spatial", "depth", "fine", "refine") else None
+            if name in ("spatial", "depth", "fine", "refine") and state.pairs is not None else None
         stage = StageResult(name, CarmPose.from_array(pose), m, time.perf_counter() - start, extra)
         state.stages.append(stage)
         self._report(name, 1.0, f"{name} done" + (f": mPDE {m:.2f} mm" if m is not None else ""))
@@ -257,13 +274,15 @@ class CarmRegLogic:
         per_metric = {}
         for name, (ty, tz) in state.spatial.best_by_metric.items():
             pose = np.array([state.database.tx_mm, ty, tz, 0, 0, 0])
-            per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": float(
+            per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": None if state.pairs is None else float(
                 mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px))}
         return {"metric": p.metric, "per_metric": per_metric,
                 "seconds_by_metric": dict(state.spatial.seconds_by_metric)}
 
     def _depth(self, state: RegistrationState) -> dict:
         p = state.parameters
+        if state.pairs is None:
+            return {"skipped": "no clicks: the pose comes from the image alone (levels stage)"}
         state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
                                    state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm,
                                    magnification_range=p.magnification_range)
@@ -272,55 +291,76 @@ class CarmRegLogic:
                 "intervertebral_cost_mm": state.depth.cost_mm}
 
     def _fine(self, state: RegistrationState) -> dict:
+        if state.pairs is None:
+            return {"skipped": "no clicks"}
         start = state.pose
         state.fine = fine_search(state.geometry, start, state.pairs.points_lps_mm, state.pairs.uv_px,
                                  state.parameters.fine, should_stop=self._check_cancel)
         return {"evaluations": state.fine.evaluations, "objective": state.fine.objective}
 
+    def _levels(self, state: RegistrationState) -> dict:
+        p = state.parameters
+        clicks = state.xray_landmarks
+        state.pairs = state.given_pairs
+        if clicks.named and len(clicks.labels) and not p.level_check:
+            return {"enabled": False}
+        ctx = IdentifyContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
+                              state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
+                              p.fine, self._check_cancel)
+        ident_params = replace(p.identify, full=p.refine_coarse)
+        if len(clicks.labels) == 0:
+            ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
+                                        state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
+                                        ident_params)
+        else:
+            ident = identify_levels(ctx, state.ct_landmarks, _clicks_with_ct_level(state), ident_params)
+            chosen = ident.chosen
+            uv = np.asarray(_clicks_with_ct_level(state).uv_px, float)[ident.order]
+            ct = state.ct_landmarks.as_dict()
+            state.pairs = Pairs(list(chosen.labels), np.array([ct[lb] for lb in chosen.labels]), uv, [])
+        state.identification = ident
+        if ident.status == "ambiguous":
+            state.warnings.append(ident.message)
+        return {"enabled": True, **ident.as_dict()}
+
     def _refine(self, state: RegistrationState) -> dict:
         p = state.parameters
         if not p.refine.enabled:
             return {"enabled": False}
-        start = state.pose
-        r = intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), state.geometry, start,
-                             state.xray_line_integral, state.mask, state.pairs.points_lps_mm, state.pairs.uv_px,
-                             p.refine, should_stop=self._check_cancel)
+        points, uv = (state.pairs.points_lps_mm, state.pairs.uv_px) if state.pairs is not None \
+            else (np.zeros((0, 3)), np.zeros((0, 2)))
+        coarse_pose, reused = self._coarse_refined_pose(state, points, uv)
+        self._report("refine", 0.5, "local image refinement")
+        local = p.refine if state.pairs is not None else replace(p.refine, landmark_weight=0.0)
+        r = intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), state.geometry, coarse_pose,
+                             state.xray_line_integral, state.mask, points, uv, local, should_stop=self._check_cancel)
         state.refine = r
-        accepted = r.mpde_mm <= p.refine_max_mpde_mm
+        accepted = state.pairs is None or r.mpde_mm <= p.refine_max_mpde_mm
         if accepted:
             state.refined_pose = r.pose
         else:
             state.warnings.append(f"the image refinement moved the clicked levels {r.mpde_mm:.1f} mm from the "
                                   "clicks; kept the landmark pose (check the clicks and the level names)")
-        return {"enabled": True, "accepted": accepted, "evaluations": r.evaluations,
-                "similarity_start": r.similarity_start, "similarity_end": r.similarity_end,
-                "refined_mpde_mm": r.mpde_mm}
+        return {"enabled": True, "accepted": accepted, "coarse_reused_from_levels": reused,
+                "evaluations": r.evaluations, "similarity_start": r.similarity_start,
+                "similarity_end": r.similarity_end, "refined_mpde_mm": r.mpde_mm}
 
-    def _levels(self, state: RegistrationState) -> dict:
+    def _coarse_refined_pose(self, state: RegistrationState, points: np.ndarray, uv: np.ndarray
+                             ) -> tuple[np.ndarray, bool]:
+        """The wide coarse pass: taken from the levels stage when it fully refined the chosen labelling from the
+        same landmark pose (the identical computation), else run here."""
+        ident = state.identification
+        if ident is not None and ident.mode == "image_only":
+            return np.asarray(ident.winner.pose, float), True
+        if ident is not None and state.fine is not None:
+            for h in ident.hypotheses:
+                if h.refined and h.labels == state.pairs.labels and np.array_equal(h.fine_pose, state.fine.pose):
+                    return np.asarray(h.pose, float), True
         p = state.parameters
-        if not p.level_check:
-            return {"enabled": False}
-        level = state.pyramid.level(p.refine.mu_spacing_mm)
-        args = (level, state.geometry)
-        common = (state.spatial.ty_mm, state.spatial.tz_mm, state.xray_line_integral, state.mask, p.fine, p.refine)
-        uv = state.pairs.uv_px
-        if state.refine is not None and state.refined_pose is not None:
-            named = LevelHypothesis(0, list(state.pairs.labels), state.refine.pose, state.refine.mpde_mm,
-                                    state.refine.similarity_end)
-        else:
-            named = fit_hypothesis(*args, state.pairs.points_lps_mm, uv, *common, 0, list(state.pairs.labels),
-                                   self._check_cancel)
-        ct = state.ct_landmarks.as_dict()
-        shifted = []
-        for shift in (-1, 1):
-            labels = shifted_labels(state.pairs.labels, shift, set(ct))
-            if labels is not None:
-                points = np.array([ct[lb] for lb in labels])
-                shifted.append(fit_hypothesis(*args, points, uv, *common, shift, labels, self._check_cancel))
-        state.level_check = assess(named, shifted, p.level_margin)
-        if state.level_check.status == "ambiguous":
-            state.warnings.append(state.level_check.message)
-        return {"enabled": True, **state.level_check.as_dict()}
+        r = intensity_refine(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.pose,
+                             state.xray_line_integral, state.mask, points, uv, p.refine_coarse,
+                             should_stop=self._check_cancel)
+        return r.pose, False
 
     def _final_drr(self, state: RegistrationState) -> dict:
         intr = state.geometry.intrinsics
@@ -346,15 +386,18 @@ class CarmRegLogic:
     def result(self, state: RegistrationState) -> RegistrationResult:
         pose = CarmPose.from_array(state.pose)
         P = state.geometry.projection_matrix(pose)
-        fitted = set(state.pairs.labels)
-        clicked = state.xray_landmarks.as_dict()
+        fitted = set(state.pairs.labels) if state.pairs is not None else set()
+        clicked = dict(zip(state.pairs.labels, state.pairs.uv_px, strict=True)) if state.pairs is not None else {}
         spacing = state.geometry.intrinsics.pixel_spacing_mm
+        named = _name_margins(state.identification)
         levels = []
         for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
             uv = project(P, point[None])[0]
             pde = float(pde_mm(P, point[None], clicked[label][None], spacing)[0]) if label in clicked else None
             levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
-                           "pde_mm": pde, "in_image": _in_image(uv, state.geometry.intrinsics.size_px)})
+                           "pde_mm": pde, "in_image": _in_image(uv, state.geometry.intrinsics.size_px),
+                           "clicked_uv_px": [float(x) for x in clicked[label]] if label in clicked else None,
+                           "name_margin": named.get(label)})
         problems = self._checks(state, pose)
         spatial = state.spatial
         return RegistrationResult(
@@ -366,7 +409,7 @@ class CarmRegLogic:
             database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
             if state.database else {},
             ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
-            level_check=state.level_check.as_dict() if state.level_check else None,
+            level_check=state.identification.as_dict() if state.identification else None,
             inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                     "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
 
@@ -374,9 +417,10 @@ class CarmRegLogic:
         """The pipeline's own sanity checks; any message here makes ``ok`` False."""
         problems = []
         p = state.parameters
-        if state.fine is None:
+        image_only = state.identification is not None and state.identification.mode == "image_only"
+        if state.fine is None and not image_only:
             problems.append("the fine stage did not run")
-        elif state.fine.mpde_mm > p.max_fine_mpde_mm:
+        elif state.fine is not None and state.fine.mpde_mm > p.max_fine_mpde_mm:
             problems.append(f"fine-stage mPDE {state.fine.mpde_mm:.1f} mm exceeds {p.max_fine_mpde_mm:.1f} mm: "
                             "the landmarks do not agree with any rigid C-arm pose; check the level names")
         mag = float(state.geometry.magnification(pose))
@@ -386,8 +430,8 @@ class CarmRegLogic:
                             "spacing and the landmarks")
         if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
             problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
-        if state.level_check is not None and state.level_check.status == "contradicted":
-            problems.append(state.level_check.message)
+        if state.identification is not None and state.identification.status == "contradicted":
+            problems.append(state.identification.message)
         lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
         if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
             problems.append("the found source-to-detector position is outside the searched range")
@@ -398,18 +442,51 @@ def _drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
     fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
-              "refine": ("refine", "refined_pose"), "levels": ("level_check",), "final_drr": ("drr_line_integral",)}
+              "refine": ("refine", "refined_pose"), "levels": ("identification",), "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:
             setattr(state, attribute, None)
     state.stages = [s for s in state.stages if s.name not in later]
 
 
+def _name_margins(ident: LevelIdentification | None) -> dict[str, float]:
+    """Per level named by the levels stage, how far its labelling is ahead of the best other one (every other
+    labelling renames every click, so it is the labelling's margin)."""
+    if ident is None:
+        return {}
+    labels = ident.visible_labels if ident.mode == "image_only" else ident.chosen.labels
+    return {lb: float(ident.margin) for lb in labels}
+
+
 def _in_image(uv: np.ndarray, size_px: tuple[int, int]) -> bool:
     return bool(-0.5 <= uv[0] <= size_px[0] - 0.5 and -0.5 <= uv[1] <= size_px[1] - 0.5)
 
 
-def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, pairs: Pairs) -> None:
+def _given_pairs(ct_landmarks: Landmarks3D, xray_landmarks: Landmarks2D) -> tuple[Pairs | None, list[str]]:
+    """Pairs by name when every click is named (LandmarkError with fewer than ``MIN_CLICKS`` common levels);
+    None when some clicks are unnamed (at least ``MIN_CLICKS`` of them) or there are none. Also the
+    plausibility notes."""
+    n = len(xray_landmarks.labels)
+    if n and xray_landmarks.named:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pairs = pair_by_label(ct_landmarks, xray_landmarks, MIN_CLICKS)
+        return pairs, [str(w.message) for w in caught]
+    if 0 < n < MIN_CLICKS:
+        raise LandmarkError(f"only {n} X-ray click(s): click the centres of at least {MIN_CLICKS} adjacent "
+                            "vertebrae (named or not), or none to identify the levels from the image alone")
+    return None, spine_order_warnings(ct_landmarks)
+
+
+def _clicks_with_ct_level(state: RegistrationState) -> Landmarks2D:
+    """The clicks the levels stage works with: named clicks without a CT centroid are left out (as in
+    pairing by name); unnamed ones all stay."""
+    x, ct = state.xray_landmarks, set(state.ct_landmarks.labels)
+    keep = [i for i, lb in enumerate(x.labels) if lb is None or lb in ct]
+    return Landmarks2D([x.labels[i] for i in keep], np.asarray(x.uv_px, float)[keep], x.source)
+
+
+def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, clicks: Landmarks2D) -> None:
     """Refuse points outside the CT or the image, and degenerate (coincident) point sets."""
     outside = [lb for lb, inside in zip(ct_landmarks.labels, ct.contains_lps(ct_landmarks.points_lps_mm),
                                         strict=True) if not inside]
@@ -418,11 +495,19 @@ def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, pai
                             f"lie outside the CT volume {ct.source}: check the landmark file's coordinate system "
                             "(LPS vs RAS) and that it belongs to this CT")
     cols, rows = xray.size_px
-    off = [lb for lb, uv in zip(pairs.labels, pairs.uv_px, strict=True) if not _in_image(uv, (cols, rows))]
+    used = [i for i, lb in enumerate(clicks.labels) if lb is None or lb in set(ct_landmarks.labels)]
+    uv_all = np.asarray(clicks.uv_px, float).reshape(-1, 2)[used]
+    off = [clicks.labels[i] or f"unnamed click {i + 1}" for i, uv in zip(used, uv_all, strict=True)
+           if not _in_image(uv, (cols, rows))]
     if off:
         raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image "
                             f"{xray.source}: check they are (column, row) pixels of this X-ray")
-    for name, pts in (("CT", pairs.points_lps_mm), ("X-ray", pairs.uv_px)):
+    if len(ct_landmarks.labels) < 3:
+        raise LandmarkError(f"only {len(ct_landmarks.labels)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: "
+                            "label at least 3 vertebrae in the CT")
+    for name, pts in (("CT", ct_landmarks.points_lps_mm), ("X-ray", uv_all)):
+        if len(pts) < 2:
+            continue
         d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
         if d.min() < 1.0:
             raise LandmarkError(f"two {name} landmarks are less than 1 {'mm' if name == 'CT' else 'px'} apart: "

@@ -1,15 +1,18 @@
 """Write a registration result: result.json, overlay, DRR (PNG + NRRD with geometry), .tfm, figures.
 
 Files (all written atomically into ``out_dir``):
-- ``result.json``: ``ok`` and ``warnings``; ``level_check`` (are the clicked level names confident, ambiguous
-  or contradicted by the image, see ``level_check``);
+- ``result.json``: ``ok`` and ``warnings``; ``level_check`` (which vertebra is which: the mode - named,
+  partly_named, unnamed or image_only -, the names assigned to the clicks, the winner and runner-up labellings,
+  the margin between them and the status confident / ambiguous / contradicted; see ``level_identify``);
   ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
   ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
   ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
   ``parameters``; ``reproducibility`` (versions, seed).
 - ``overlay.png``: the X-ray with the DRR's bone blended in cyan and every CT-labelled level's projected centroid
-  and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings.
+  and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings;
+  a banner at the top states how the levels were named and how sure that is (green confident, amber ambiguous,
+  red contradicted).
 - ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; 2D image embedded in LPS:
   ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step along columns and rows).
 - ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).
@@ -94,9 +97,28 @@ def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float, mask: np.ndarr
     return rgb * (1 - alpha) + EDGE_RGB * alpha
 
 
+STATUS_RGB = {"confident": (40, 220, 90), "ambiguous": (255, 190, 0), "contradicted": (255, 60, 60)}
+MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
+             "image_only": "image alone (no clicks)"}
+
+
+def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] | None:
+    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up."""
+    if not level_check:
+        return None
+    status = str(level_check.get("status", ""))
+    margin = level_check.get("margin")
+    runner = level_check.get("runner_up_labels")
+    text = f"Levels from {MODE_TEXT.get(level_check.get('mode'), level_check.get('mode'))}: {status.upper()}"
+    if margin is not None and np.isfinite(margin):
+        text += f" (margin {margin:+.3f}"
+        text += f" over {'-'.join([runner[0], runner[-1]]) if len(runner) > 1 else runner[0]})" if runner else ")"
+    return text, STATUS_RGB.get(status, (255, 255, 255))
+
+
 def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list,
                   clicked: dict | None = None, edge_strength: float = 0.6,
-                  mask: np.ndarray | None = None) -> Image.Image:
+                  mask: np.ndarray | None = None, level_check: dict | None = None) -> Image.Image:
     """RGB overlay: X-ray (as displayed) + DRR bone in cyan + projected, named centroids."""
     gray = to_uint8(np.asarray(xray_pixels, float)).astype(float)
     rgb = np.repeat(gray[..., None], 3, axis=2)
@@ -119,6 +141,11 @@ def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None,
         u, v = uv
         draw.line([u - 2 * r, v, u + 2 * r, v], fill=CLICK_RGB, width=2)
         draw.line([u, v - 2 * r, u, v + 2 * r], fill=CLICK_RGB, width=2)
+    banner = level_banner(level_check)
+    if banner is not None:
+        box = draw.textbbox((r, r), banner[0], font=font)
+        draw.rectangle([box[0] - r // 2, box[1] - r // 2, box[2] + r // 2, box[3] + r // 2], fill=(0, 0, 0))
+        draw.text((r, r), banner[0], fill=banner[1], font=font)
     return img
 
 
@@ -204,7 +231,8 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
                                                                     result.levels, clicked,
-                                                                    mask=field_mask(xray_pixels, bone_dark)))}
+                                                                    mask=field_mask(xray_pixels, bone_dark),
+                                                                    level_check=result.level_check))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
         paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,

@@ -32,6 +32,7 @@ from scipy import ndimage
 
 from .errors import LandmarkError
 from .landmarks import LEVEL_NAMES, Landmarks3D, level_index, normalize_level_name
+from .volume import Volume
 
 TOTALSEGMENTATOR_V2_VERTEBRAE: dict[int, str] = {
     26: "S1",
@@ -131,3 +132,86 @@ def to_carmreg_labels(label_map: np.ndarray, value_to_name: dict[int, str]) -> n
     for value, name in value_to_name.items():
         lut[value] = carmreg_label_value(name)
     return lut[np.asarray(label_map).astype(np.intp, copy=False)]
+
+
+# ----------------------------------------------------------------------------------------------- labels from centroids
+
+def spine_slab_planes(points_lps_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary planes of the vertebral slabs: ((n + 1, 3) points, (n + 1, 3) unit normals), LPS mm.
+
+    ``points_lps_mm``: (n, 3) centroids c_0 .. c_{n-1}, head to sacrum, n >= 2. With d_k the unit direction
+    of c_k -> c_{k+1} and h_k = |c_{k+1} - c_k|, plane b_k (k = 1 .. n-1) passes through the midpoint
+    (c_{k-1} + c_k) / 2 with normal d_{k-1}; the end planes are b_0 through c_0 - d_0 h_0 / 2 (normal d_0)
+    and b_n through c_{n-1} + d_{n-2} h_{n-2} / 2 (normal d_{n-2}). Normals point toward the sacrum.
+    """
+    c = np.asarray(points_lps_mm, float).reshape(-1, 3)
+    if len(c) < 2:
+        raise LandmarkError(f"a vertebra label map from centroids needs at least 2 centroids, got {len(c)}; "
+                            "give the centroids of two or more adjacent levels")
+    steps = np.diff(c, axis=0)
+    lengths = np.linalg.norm(steps, axis=1)
+    if np.any(lengths < 1e-6):
+        raise LandmarkError("two consecutive vertebral centroids coincide; check the landmark file "
+                            "(each level needs its own centroid)")
+    d = steps / lengths[:, None]
+    points = np.vstack([c[0] - d[0] * lengths[0] / 2, (c[:-1] + c[1:]) / 2, c[-1] + d[-1] * lengths[-1] / 2])
+    normals = np.vstack([d[:1], d, d[-1:]])
+    return points, normals
+
+
+def distance_to_polyline(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(m,) Euclidean distance of each point (m, 3) to the polyline through ``vertices`` (v, 3), v >= 2:
+    min over segments [a, b] of |x - a - clip(((x - a) . (b - a)) / |b - a|^2, 0, 1) (b - a)|."""
+    best = np.full(len(points), np.inf)
+    for a, b in zip(vertices[:-1], vertices[1:], strict=True):
+        ab = b - a
+        rel = points - a
+        t = np.clip(rel @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(rel - t[:, None] * ab, axis=1))
+    return best
+
+
+def label_map_from_centroids(volume: Volume, centroids: Landmarks3D, *, radius_mm: float = 40.0,
+                             bone_hu: float = 150.0) -> np.ndarray:
+    """Approximate vertebra label map (uint8 on the CT grid, CarmReg values) from vertebral centroids alone.
+
+    For a CT that has centroids but no segmentation: each bone voxel near the spine is given to the level
+    whose slab holds it, so a simulation can move every vertebra rigidly on its own.
+
+    Frames: voxel centres x = ijk_to_lps @ [i, j, k, 1] and the centroids are LPS mm (any oblique grid).
+    Centroids c_0 .. c_{n-1} are taken head to sacrum (``Landmarks3D.sorted``); n >= 2.
+
+    - Spine polyline: c_0 .. c_{n-1}, extended at both ends by half the adjacent intervertebral distance
+      (the end points of ``spine_slab_planes``).
+    - Slabs (``spine_slab_planes``): boundary planes through the midpoints of consecutive centroids,
+      perpendicular to the local spine direction d_k = (c_{k+1} - c_k) / |c_{k+1} - c_k|; the end slabs reach
+      half an intervertebral distance beyond the end centroids. With signed distances
+      s_b(x) = (x - p_b) . n_b, level k holds the x with s_k(x) >= 0 > s_{k+1}(x) (the first such k when
+      planes of a sharply bent spine cross near it).
+    - A voxel is labelled when HU > ``bone_hu`` and its distance to the polyline is < ``radius_mm``
+      (perpendicular distance along each segment, distance to the nearest vertex past a segment's end).
+
+    Value of level ``name``: 1 + LEVEL_NAMES.index(name) (``carmreg_label_value``); 0 elsewhere.
+    Bone of the pelvis or ribs within the radius goes with its slab's level; soft-tissue-density bone
+    (HU <= bone_hu) stays unlabelled. Raises LandmarkError for fewer than 2 centroids or coincident ones.
+    """
+    lm = centroids.sorted()
+    plane_points, normals = spine_slab_planes(lm.points_lps_mm)
+    vertices = np.vstack([plane_points[:1], lm.points_lps_mm, plane_points[-1:]])
+    labels = np.zeros(volume.shape, dtype=np.uint8)
+    ijk = np.nonzero(np.asarray(volume.hu) > bone_hu)
+    if not len(ijk[0]):
+        return labels
+    affine = volume.ijk_to_lps
+    x = np.stack(ijk, axis=1).astype(np.float64) @ affine[:3, :3].T + affine[:3, 3]
+    lo, hi = vertices.min(axis=0) - radius_mm, vertices.max(axis=0) + radius_mm
+    near = np.nonzero(np.all((x >= lo) & (x <= hi), axis=1))[0]
+    near = near[distance_to_polyline(x[near], vertices) < radius_mm]
+    signed = x[near] @ normals.T - np.einsum("bj,bj->b", plane_points, normals)[None, :]
+    inside = (signed[:, :-1] >= 0.0) & (signed[:, 1:] < 0.0)
+    hit = inside.any(axis=1)
+    level = inside.argmax(axis=1)[hit]
+    values = np.array([carmreg_label_value(n) for n in lm.labels], dtype=np.uint8)
+    chosen = near[hit]
+    labels[ijk[0][chosen], ijk[1][chosen], ijk[2][chosen]] = values[level]
+    return labels

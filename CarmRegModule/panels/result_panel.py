@@ -3,6 +3,13 @@
 PDE (projection distance error) of a level = distance on the detector, mm, between its CT centroid projected
 with the found P and the user's click on the X-ray. Fitted levels were used by the optimiser; the others are
 an independent check of the level names and the pose.
+
+Level identification (``RegistrationResult.level_check``): which levels the X-ray clicks are, and how sure the
+image makes that. ``mode`` says what was given (named, partly named, unnamed clicks, or none: image only);
+``status`` is confident (green), ambiguous (amber) or contradicted (red); ``margin`` = how much better the
+assigned labelling scores than the runner-up (larger = surer). Without clicks, the levels the found pose
+puts in the image (``visible_labels``) are listed instead. "Accept assigned names" writes the assigned names
+into the clicks (one undo step; the window does it).
 """
 
 from __future__ import annotations
@@ -14,12 +21,49 @@ from Logic.camera import POSE_NAMES
 
 from ..overlay_images import MODES
 
+STATUS_COLORS = {"confident": "#69db7c", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
+MODE_TEXT = {"named": "named clicks: their names were checked against the image",
+             "partly_named": "partly named clicks: the unnamed ones were named from the image",
+             "unnamed": "unnamed clicks: their levels were identified from the image",
+             "image_only": "no clicks: the levels were identified from the image alone"}
+MAX_HYPOTHESES = 6
+
+
+def format_margin(margin) -> str:
+    """The level check's margin as text ('inf' = no other labelling to compare with)."""
+    if margin is None:
+        return "-"
+    margin = float(margin)
+    if not np.isfinite(margin):
+        return "no alternative labelling" if margin > 0 else "-"
+    return f"{margin:+.3f}"
+
+
+def ranked_hypotheses(check: dict) -> list[dict]:
+    """The labellings tried, best first: the winner, the runner-up, then the fully refined ones and the
+    screened ones, each by score (the refinement objective: lower is better)."""
+    winner = list(check.get("winner_labels") or check.get("assigned_labels") or [])
+    runner_up = list(check.get("runner_up_labels") or [])
+
+    def key(h: dict):
+        labels = list(h.get("labels") or [])
+        score = h.get("score")
+        rank = 0 if labels == winner else 1 if labels == runner_up else 2
+        return rank, not h.get("refined", True), float("inf") if score is None else float(score)
+    return sorted(check.get("hypotheses") or [], key=key)
+
+
+def arrow_list(names: list[str], labels: list[str]) -> str:
+    """'?1 → T10, ?2 → T11, T12' (a click keeps its shown name alone when the assigned one is the same)."""
+    return ", ".join(lb if shown == lb else f"{shown} \u2192 {lb}" for shown, lb in zip(names, labels, strict=False))
+
 
 class ResultPanel(QtWidgets.QWidget):
     """Controls for the OverlayView plus the numbers of the last result."""
 
     export_requested = QtCore.Signal()
     overlay_png_requested = QtCore.Signal()
+    accept_names_requested = QtCore.Signal()
 
     def __init__(self, overlay_view, parent=None):
         super().__init__(parent)
@@ -60,6 +104,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.names_check.toggled.connect(self._names_toggled)
         form.addRow("", self.names_check)
         layout.addWidget(box)
+        layout.addWidget(self._level_box())
 
         self.table = QtWidgets.QTableWidget(0, 4)
         self.table.setHorizontalHeaderLabels(["Level", "Fitted", "PDE (mm)", "(u, v) px"])
@@ -88,16 +133,111 @@ class ResultPanel(QtWidgets.QWidget):
         layout.addLayout(row)
         self.set_result(None)
 
+    def _level_box(self) -> QtWidgets.QGroupBox:
+        box = QtWidgets.QGroupBox("Level identification")
+        box.setObjectName("level_identification")
+        form = QtWidgets.QFormLayout(box)
+        self.level_mode_label = QtWidgets.QLabel("-")
+        self.level_status_label = QtWidgets.QLabel("-")
+        self.level_status_label.setObjectName("level_status")
+        self.level_message_label = QtWidgets.QLabel("")
+        self.level_margin_label = QtWidgets.QLabel("-")
+        self.level_runner_up_label = QtWidgets.QLabel("-")
+        self.level_assigned_label = QtWidgets.QLabel("-")
+        for label in (self.level_mode_label, self.level_message_label, self.level_assigned_label,
+                      self.level_runner_up_label):
+            label.setWordWrap(True)
+        for label in (self.level_message_label, self.level_assigned_label):
+            label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.level_margin_label.setToolTip("Score of the assigned labelling minus the runner-up's: larger = surer")
+        form.addRow("Mode", self.level_mode_label)
+        form.addRow("Status", self.level_status_label)
+        form.addRow("", self.level_message_label)
+        form.addRow("Assigned", self.level_assigned_label)
+        form.addRow("Margin", self.level_margin_label)
+        form.addRow("Runner-up", self.level_runner_up_label)
+        self.hypotheses_table = QtWidgets.QTableWidget(0, 4)
+        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score", "Similarity", "mPDE (mm)"])
+        self.hypotheses_table.verticalHeader().setVisible(False)
+        self.hypotheses_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.hypotheses_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.NoSelection)
+        header = self.hypotheses_table.horizontalHeader()
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        for c in (1, 2, 3):
+            header.setSectionResizeMode(c, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.hypotheses_table.setFixedHeight(
+            self.hypotheses_table.verticalHeader().defaultSectionSize() * (MAX_HYPOTHESES + 1) + 6)
+        self.hypotheses_table.setToolTip("The labellings tried, best first (bold: the image's choice). Score: "
+                                         "image dissimilarity + landmark misfit, lower is better")
+        form.addRow(self.hypotheses_table)
+        self.accept_button = QtWidgets.QPushButton("Accept assigned names")
+        self.accept_button.setToolTip("Name the X-ray clicks as assigned by the level identification (Ctrl+Z "
+                                      "undoes)")
+        self.accept_button.clicked.connect(self.accept_names_requested)
+        form.addRow(self.accept_button)
+        return box
+
+    def set_level_check(self, check: dict | None, click_names: list[str] | None = None) -> None:
+        """Show ``result.level_check`` ({} or None: no identification ran); ``click_names`` = the clicks as
+        shown ('T10', '?1', ...) in the order the logic got them."""
+        check = check or {}
+        status = check.get("status")
+        colour = STATUS_COLORS.get(status, "#c8ccd0")
+        self.level_status_color = colour if status else None
+        mode = check.get("mode")
+        self.level_mode_label.setText(MODE_TEXT.get(mode, mode or "-") if check else "-")
+        self.level_status_label.setText(status.upper() if status else ("-" if not check else "not checked"))
+        self.level_status_label.setStyleSheet(f"color: {colour}; font-weight: bold;")
+        message = check.get("message") or ""
+        self.level_message_label.setText(message)
+        self.level_message_label.setStyleSheet(f"color: {colour};" if status != "confident" else "")
+        self.level_message_label.setVisible(bool(message))
+        labels = list(check.get("assigned_labels") or [])
+        names = list(click_names or [])
+        visible = list(check.get("visible_labels") or [])
+        if labels and len(names) == len(labels):
+            self.level_assigned_label.setText(arrow_list(names, labels))
+        elif labels:
+            self.level_assigned_label.setText(", ".join(labels))
+        else:  # no clicks: the levels the found pose puts in the image
+            self.level_assigned_label.setText(f"in the image: {', '.join(visible)}" if visible else "-")
+        self.level_margin_label.setText(format_margin(check.get("margin")) if check else "-")
+        runner_up = check.get("runner_up_labels")
+        prefers = status == "contradicted" and mode in ("named", "partly_named")
+        self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)
+                                           if runner_up else "-")
+        hypotheses = ranked_hypotheses(check)[:MAX_HYPOTHESES]
+        self.hypotheses_table.setRowCount(len(hypotheses))
+        winner = list(check.get("winner_labels") or labels)
+        for row, h in enumerate(hypotheses):
+            cells = [", ".join(h.get("labels") or []) or "-"] + [
+                "-" if h.get(k) is None else f"{float(h[k]):.{d}f}"
+                for k, d in (("score", 3), ("similarity", 3), ("mpde_mm", 2))]
+            for col, text in enumerate(cells):
+                item = QtWidgets.QTableWidgetItem(text)
+                if list(h.get("labels") or []) == winner:
+                    font = item.font()
+                    font.setBold(True)
+                    item.setFont(font)
+                self.hypotheses_table.setItem(row, col, item)
+
+    def set_accept_enabled(self, enabled: bool, reason: str = "") -> None:
+        self.accept_button.setEnabled(bool(enabled))
+        self.accept_button.setToolTip(reason or "Name the X-ray clicks as assigned by the level identification "
+                                                "(Ctrl+Z undoes)")
+
     def _names_toggled(self, on: bool) -> None:
         self.overlay.show_names = on
         self.overlay.refresh_markers()
 
-    def set_result(self, result) -> None:
+    def set_result(self, result, click_names: list[str] | None = None) -> None:
         has = result is not None
         self.export_button.setEnabled(has)
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))
+        self.set_level_check(getattr(result, "level_check", None) if has else None, click_names)
         if not has:
+            self.set_accept_enabled(False, "No result yet")
             self.pose_label.setText("No result yet: run the registration (step 4).")
             return
         for row, level in enumerate(result.levels):

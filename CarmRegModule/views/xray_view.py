@@ -1,15 +1,24 @@
 """The X-ray view: detector pixels as scene coordinates, so a scene point (x, y) is (u, v) = (column, row).
 
 Pixel centres sit at integer (u, v); the image spans [-0.5, columns - 0.5] x [-0.5, rows - 0.5].
+
+Clicks without a level name are drawn ``?1``, ``?2``, ... (top of the image first, ``PointStore.unnamed_numbers``).
+After a registration that identified the levels, ``set_assigned`` adds the assigned name: ``?1 → T11`` (or
+``T10 → T11`` when the image disagrees with a given name), coloured by how sure the identification is.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from qtpy import QtCore
+from qtpy import QtCore, QtWidgets
+
+from Logic.landmarks import LEVEL_NAMES
 
 from ..qt_common import robust_range
-from .image_canvas import ImageCanvas
+from .image_canvas import ImageCanvas, MarkerSpec
+
+STATUS_COLORS = {"confident": "#69db7c", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
+ARROW = "\u2192"
 
 
 class XrayView(ImageCanvas):
@@ -21,6 +30,57 @@ class XrayView(ImageCanvas):
         self.placeholder = "Load an X-ray (File > Load X-ray... or Load sample case)"
         self.setObjectName("xray_view")
         self.pixel_spacing_mm: tuple[float, float] | None = None
+        self.assigned: dict[int, str] = {}   # point id -> level assigned by the registration
+        self.assigned_status: str | None = None
+
+    # ------------------------------------------------------------------------------------- level names
+    def set_assigned(self, assigned: dict[int, str], status: str | None = None) -> None:
+        """Show the registration's level for each click ({point id: level}); {} clears."""
+        self.assigned, self.assigned_status = dict(assigned), status
+        self.refresh_markers()
+
+    def marker_text(self, point_id: int) -> str:
+        """``T11``, ``?1``, ``?1 → T11`` or ``T10 → T11`` (given name, then the assigned one if it differs)."""
+        point = self.store.get(point_id)
+        shown = self.store.display_name(point_id)
+        assigned = self.assigned.get(point_id)
+        return shown if not assigned or assigned == point.label else f"{shown} {ARROW} {assigned}"
+
+    def marker_specs(self) -> list[MarkerSpec]:
+        specs = super().marker_specs()
+        for spec in specs:
+            spec.text = self.marker_text(spec.key)
+            assigned = self.assigned.get(spec.key)
+            if assigned and assigned != self.store.get(spec.key).label and spec.style != "selected":
+                spec.color = STATUS_COLORS.get(self.assigned_status)
+        return specs
+
+    def _place(self, position: np.ndarray) -> None:
+        if self.store.naming:
+            super()._place(position)
+            return
+        point_id = self.store.place(position)
+        self.point_activated.emit(np.asarray(position, float).copy())
+        self.status_message.emit(f"Unnamed click {self.store.display_name(point_id)} placed on the X-ray "
+                                 f"({self.store.unnamed_count()} unnamed); CarmReg identifies the levels")
+
+    def _point_menu(self, point_id, global_pos: QtCore.QPoint) -> None:
+        point = self.store.get(point_id)
+        menu = QtWidgets.QMenu(self)
+        rename = menu.addMenu("Rename to")
+        used = set(self.store.labels())
+        assigned = self.assigned.get(point_id)
+        if assigned and assigned != point.label:
+            menu.addAction(f"Name it {assigned} (identified)", lambda: self._rename(point_id, assigned))
+        for name in LEVEL_NAMES:
+            action = rename.addAction(name)
+            action.setEnabled(name not in used or name == point.label)
+            action.triggered.connect(lambda _=False, n=name: self._rename(point_id, n))
+        if point.label:
+            menu.addAction("Clear the name (unnamed click)", lambda: self._rename(point_id, None))
+        menu.addSeparator()
+        menu.addAction("Delete point", lambda: self.store.remove(point_id))
+        menu.exec(global_pos)
 
     def set_pixels(self, pixels: np.ndarray | None) -> None:
         self._fitted_once = False

@@ -72,7 +72,7 @@ def run_case(ct, centroids, sim, xray, params, clicks=None):
 def shifted_clicks(sim, centroids, shift: int = 1):
     """The same clicks with every label moved one level caudally (T10, T11, T12 -> T11, T12, L1)."""
     from Logic.landmarks import Landmarks2D
-    from Logic.level_check import shifted_labels
+    from Logic.level_identify import shifted_labels
 
     labels = shifted_labels(sim.clicks.labels, shift, set(centroids.labels))
     return None if labels is None else Landmarks2D(labels, sim.clicks.uv_px, "shifted")
@@ -103,7 +103,7 @@ def summarize(rows: list[dict], free_rows: list[dict], shifted_rows: list[dict] 
     paper = {"database": "(preoperative)", "spatial": "20.41 mm, ~10 s coarse", "depth": "12.18 mm",
              "fine": "0.36 mm, ~15 s", "refine": "(not in the paper)", "levels": "(not in the paper)",
              "final_drr": "~90 s"}
-    for name in ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr"):
+    for name in ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr"):
         m = [r["stages"][name]["mpde_mm"] for r in rows if r["stages"][name]["mpde_mm"] is not None]
         s = [r["stages"][name]["seconds"] if name != "spatial" else
              r["stages"][name]["seconds_by_metric"][r["stages"][name]["metric"]] for r in rows]

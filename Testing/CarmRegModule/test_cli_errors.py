@@ -160,6 +160,8 @@ CASES = {
     "landmarks with 2 pairs": (lambda c: {"xray_landmarks": _write(c, "two.json", {
         k: v for k, v in json.loads(c["xray_landmarks"].read_text()).items() if k != "L1"})},
                                "only 2 level(s) (T11, T12) are labelled on both the CT"),
+    "two unnamed clicks": (lambda c: {"xray_landmarks": _write(c, "two_unnamed.json", [[60, 40], [60, 70]])},
+                           "only 2 X-ray click(s): click the centres of at least 3"),
     "unknown level name": (lambda c: {"xray_landmarks": _write(c, "t14.json", {"T11": [1, 2],
                                                                              "T14": [3, 4]})},
                            "t14.json: landmark label 'T14' is not a vertebral level"),

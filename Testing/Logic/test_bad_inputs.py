@@ -174,8 +174,10 @@ def test_fewer_than_three_pairs(case):
     with pytest.raises(LandmarkError, match=r"only 2 level\(s\) \(T11, T12\) are labelled on both the CT "
                                             r"\(ct.mrk.json\) and the X-ray \(xr.json\); label at least 3"):
         prepare(case, xray_landmarks=_xr(["T11", "T12"], case["uv_px"][:2]))
-    with pytest.raises(LandmarkError, match=r"only 0 level\(s\) \(none\)"):
-        prepare(case, xray_landmarks=_xr([None, None, None], case["uv_px"][:3]))  # unnamed clicks only
+    with pytest.raises(LandmarkError, match=r"only 2 X-ray click\(s\): click the centres of at least 3"):
+        prepare(case, xray_landmarks=_xr([None, "T12"], case["uv_px"][:2]))  # too few to identify levels by
+    state = prepare(case, xray_landmarks=_xr([None, None, None], case["uv_px"][:3]))  # unnamed: identified later
+    assert state.pairs is None
 
 
 def test_a_label_on_one_side_only_uses_the_common_levels_and_warns(case):

@@ -133,5 +133,5 @@ def test_rerunning_a_stage_forgets_the_later_ones(sample, cache):
         logic.run_stage(state, name)
     logic.run_stage(state, "fine")  # the user goes back one stage
     assert state.refined_pose is None and state.drr_line_integral is None
-    assert [s.name for s in state.stages] == ["database", "spatial", "depth", "fine"]
+    assert [s.name for s in state.stages] == ["database", "spatial", "levels", "depth", "fine"]
     assert np.array_equal(state.pose, state.fine.pose)

@@ -1,0 +1,41 @@
+"""`carmreg register` names unnamed X-ray clicks and identifies levels without clicks, on the sample case."""
+
+import json
+
+import pytest
+
+from CarmRegModule.cli import main
+from Logic.landmarks import read_landmarks_2d
+
+pytestmark = pytest.mark.slow
+
+
+def _args(case_dir, out, *clicks):
+    return ["register", "--ct", str(case_dir / "ct.nrrd"), "--ct-landmarks", str(case_dir / "ct_centroids.mrk.json"),
+            "--xray", str(case_dir / "xray.dcm"), "--out", str(out), "--cache-dir", str(out.parent / "cache"),
+            *clicks]
+
+
+def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir, tmp_path, capsys):
+    truth = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")
+    order = [1, 2, 0]
+    clicks = tmp_path / "clicks.json"
+    clicks.write_text(json.dumps([truth.uv_px[i].tolist() for i in order]))  # [[column, row], ...], no names
+    code = main(_args(sample_case_dir, tmp_path / "out", "--xray-landmarks", str(clicks)))
+    assert code == 0
+    doc = json.loads((tmp_path / "out" / "result.json").read_text())
+    check = doc["level_check"]
+    assert check["mode"] == "unnamed" and check["status"] == "confident"
+    assert check["assigned_labels"] == [truth.labels[i] for i in order]
+    fitted = {lv["label"]: lv for lv in doc["levels"] if lv["fitted"]}
+    assert set(fitted) == set(truth.labels)
+    assert all(lv["name_margin"] == pytest.approx(check["margin"]) for lv in fitted.values())
+    assert "level identification: clicks named" in capsys.readouterr().out
+
+
+def test_no_clicks_names_the_levels_in_view(sample_case_dir, tmp_path, capsys):
+    code = main(_args(sample_case_dir, tmp_path / "out", "--no-clicks"))
+    assert code == 0
+    check = json.loads((tmp_path / "out" / "result.json").read_text())["level_check"]
+    assert check["mode"] == "image_only" and {"T10", "T11", "T12"} <= set(check["visible_labels"])
+    assert "from the image alone" in capsys.readouterr().out
