@@ -20,6 +20,8 @@ from qtpy import QtCore, QtGui, QtWidgets
 from Logic.errors import CancelledError, CarmRegError
 
 LOG = logging.getLogger("carmreg.gui")
+# level identification status -> colour (green sure, yellow proposed from the image alone, amber, red)
+STATUS_COLORS = {"confident": "#69db7c", "proposed": "#ffe066", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
 ACCENT = "#3fa7ff"
 POINT_COLOR = "#39d0ff"
 SELECTED_COLOR = "#ffd43b"

@@ -46,9 +46,12 @@ from .level_identify import (
     IdentifyContext,
     IdentifyParameters,
     LevelIdentification,
+    candidate_labellings,
     coarse_refine_parameters,
+    ct_level_names,
     identify_from_image,
     identify_levels,
+    order_along_spine,
 )
 from .pde import mpde_mm, pde_mm
 from .similarity import METRICS
@@ -313,9 +316,10 @@ class CarmRegLogic:
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
                                         ident_params)
         else:
-            ident = identify_levels(ctx, state.ct_landmarks, _clicks_with_ct_level(state), ident_params)
+            used = _clicks_with_ct_level(state.ct_landmarks, clicks)
+            ident = identify_levels(ctx, state.ct_landmarks, used, ident_params)
             chosen = ident.chosen
-            uv = np.asarray(_clicks_with_ct_level(state).uv_px, float)[ident.order]
+            uv = np.asarray(used.uv_px, float)[ident.order]
             ct = state.ct_landmarks.as_dict()
             state.pairs = Pairs(list(chosen.labels), np.array([ct[lb] for lb in chosen.labels]), uv, [])
         state.identification = ident
@@ -475,13 +479,17 @@ def _given_pairs(ct_landmarks: Landmarks3D, xray_landmarks: Landmarks2D) -> tupl
     if 0 < n < MIN_CLICKS:
         raise LandmarkError(f"only {n} X-ray click(s): click the centres of at least {MIN_CLICKS} adjacent "
                             "vertebrae (named or not), or none to identify the levels from the image alone")
+    if n:  # unnamed or partly named: refuse now, not after the database, what no labelling can satisfy
+        clicks = _clicks_with_ct_level(ct_landmarks, xray_landmarks)
+        names = [clicks.labels[i] for i in order_along_spine(clicks.uv_px)]
+        candidate_labellings(names, ct_level_names(ct_landmarks), 0)
     return None, spine_order_warnings(ct_landmarks)
 
 
-def _clicks_with_ct_level(state: RegistrationState) -> Landmarks2D:
+def _clicks_with_ct_level(ct_landmarks: Landmarks3D, x: Landmarks2D) -> Landmarks2D:
     """The clicks the levels stage works with: named clicks without a CT centroid are left out (as in
     pairing by name); unnamed ones all stay."""
-    x, ct = state.xray_landmarks, set(state.ct_landmarks.labels)
+    ct = set(ct_landmarks.labels)
     keep = [i for i, lb in enumerate(x.labels) if lb is None or lb in ct]
     return Landmarks2D([x.labels[i] for i in keep], np.asarray(x.uv_px, float)[keep], x.source)
 

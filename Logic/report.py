@@ -97,7 +97,8 @@ def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float, mask: np.ndarr
     return rgb * (1 - alpha) + EDGE_RGB * alpha
 
 
-STATUS_RGB = {"confident": (40, 220, 90), "ambiguous": (255, 190, 0), "contradicted": (255, 60, 60)}
+STATUS_RGB = {"confident": (40, 220, 90), "proposed": (255, 230, 60), "ambiguous": (255, 190, 0),
+              "contradicted": (255, 60, 60)}
 MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
              "image_only": "image alone (no clicks)"}
 

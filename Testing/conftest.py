@@ -49,6 +49,19 @@ def sample_case_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def sample_ct(sample_case_dir: Path):
+    """The sample case's CT (Volume), vertebra label map (uint8 array) and CT centroids (Landmarks3D)."""
+    import numpy as np
+
+    from Logic.io_volume import load_volume
+    from Logic.landmarks import read_landmarks_3d
+
+    ct = load_volume(sample_case_dir / "ct.nrrd")
+    labels = np.asarray(load_volume(sample_case_dir / "vertebrae.nrrd").hu).astype(np.uint8)
+    return ct, labels, read_landmarks_3d(sample_case_dir / "ct_centroids.mrk.json")
+
+
+@pytest.fixture(scope="session")
 def small_real_ct(totalseg_dir: Path):
     """A small real CT (122 x 101 x 30 voxels at 3 mm, int16 HU) as a Volume; skips when absent."""
     from Logic.io_volume import load_volume

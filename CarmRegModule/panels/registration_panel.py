@@ -16,13 +16,14 @@ import time
 
 from qtpy import QtCore, QtWidgets
 
+from ..qt_common import STATUS_COLORS
+
 STAGE_TITLES = {"database": "1a  DRR database", "spatial": "1b  Spatial search (Ty, Tz)",
                 "levels": "1c  Level identification", "depth": "2   Depth search (Tx)",
                 "fine": "3   Fine search (6 DOF)", "refine": "4   Image refinement (6 DOF)",
                 "final_drr": "    Final DRR"}
 STAGE_WEIGHTS = {"database": 0.35, "spatial": 0.1, "levels": 0.35, "depth": 0.01, "fine": 0.02, "refine": 0.12,
                  "final_drr": 0.05}  # shares of the run time on the sample case (3 unnamed clicks, no cache)
-STATUS_COLORS = {"confident": "#69db7c", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
 
 
 class ConvergencePlot(QtWidgets.QWidget):

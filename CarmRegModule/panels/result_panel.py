@@ -20,8 +20,8 @@ from qtpy import QtCore, QtWidgets
 from Logic.camera import POSE_NAMES
 
 from ..overlay_images import MODES
+from ..qt_common import STATUS_COLORS
 
-STATUS_COLORS = {"confident": "#69db7c", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
 MODE_TEXT = {"named": "named clicks: their names were checked against the image",
              "partly_named": "partly named clicks: the unnamed ones were named from the image",
              "unnamed": "unnamed clicks: their levels were identified from the image",

@@ -14,10 +14,9 @@ from qtpy import QtCore, QtWidgets
 
 from Logic.landmarks import LEVEL_NAMES
 
-from ..qt_common import robust_range
+from ..qt_common import STATUS_COLORS, robust_range
 from .image_canvas import ImageCanvas, MarkerSpec
 
-STATUS_COLORS = {"confident": "#69db7c", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
 ARROW = "\u2192"
 
 

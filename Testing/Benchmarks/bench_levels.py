@@ -126,8 +126,8 @@ def summarize(rows: list[dict]) -> str:
     lines = [f"{len(rows)} simulated cases ({counts}), "
              f"1024-px image-intensifier detector; {platform.processor() or platform.machine()}, 2 cores, "
              f"{time.strftime('%Y-%m-%d')}.", ""]
-    lines += ["| mode | right levels | off by one | confident AND wrong | flagged ambiguous | contradicted | "
-              "seconds per case, median (max) |", "|---|---|---|---|---|---|---|"]
+    lines += ["| mode | right levels | off by one | confident (no clicks: proposed) AND wrong | flagged ambiguous | "
+              "contradicted | seconds per case, median (max) |", "|---|---|---|---|---|---|---|"]
     for mode in MODES:
         runs = [r[mode] for r in rows if r.get(mode)]
         if not runs:
@@ -135,7 +135,7 @@ def summarize(rows: list[dict]) -> str:
         right = [_right(mode, x) for x in runs]
         n = len(runs)
         off1 = sum(abs(x["offset"]) == 1 for x in runs)
-        conf_wrong = sum(x["status"] == "confident" and not ok for x, ok in zip(runs, right, strict=True))
+        conf_wrong = sum(x["status"] in ("confident", "proposed") and not ok for x, ok in zip(runs, right, strict=True))
         amb = sum(x["status"] == "ambiguous" for x in runs)
         contra = sum(x["status"] == "contradicted" for x in runs)
         secs = [x["seconds"] for x in runs]
@@ -164,6 +164,11 @@ def _right(mode: str, x: dict) -> bool:
     if mode == "wrong":
         return x["status"] != "confident"
     return x["status"] != "contradicted"
+
+
+def resummarize(path: Path) -> str:
+    """The table again from a results JSON (e.g. after a status was renamed)."""
+    return summarize(json.loads(path.read_text()))
 
 
 def main(argv=None) -> int:

@@ -91,3 +91,20 @@ def window(qapp, tmp_path):
     yield win
     win.discard_and_close()
     process_events()
+
+
+@pytest.fixture()
+def xray_window(window):
+    """The window with a 400 x 300 px in-memory X-ray (geometry known) on the X-ray step."""
+    from gui_helpers import ready
+
+    from Logic.camera import CarmIntrinsics
+    from Logic.xray import XrayImage
+
+    rows, cols = 300, 400
+    pixels = np.add.outer(np.arange(rows), np.arange(cols)).astype(np.float32)
+    xray = XrayImage(pixels, CarmIntrinsics(1000.0, (0.3, 0.3), (cols, rows)), 600.0, True, "", {})
+    window.set_xray_image(xray)
+    window.set_step(2)
+    ready(window.xray_view)
+    return window

@@ -21,20 +21,6 @@ def ct_window(window):
     return window, volume, centres
 
 
-@pytest.fixture()
-def xray_window(window):
-    from Logic.camera import CarmIntrinsics
-    from Logic.xray import XrayImage
-
-    rows, cols = 300, 400
-    pixels = np.add.outer(np.arange(rows), np.arange(cols)).astype(np.float32)
-    xray = XrayImage(pixels, CarmIntrinsics(1000.0, (0.3, 0.3), (cols, rows)), 600.0, True, "", {})
-    window.set_xray_image(xray)
-    window.set_step(2)
-    ready(window.xray_view)
-    return window
-
-
 def test_click_places_the_proposed_level_at_the_clicked_lps_position(ct_window):
     win, volume, centres = ct_window
     axial = win.axial

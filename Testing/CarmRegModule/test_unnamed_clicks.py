@@ -11,26 +11,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from gui_helpers import click, drag, key, ready, scene_tolerance
+from gui_helpers import click, drag, key, scene_tolerance
 from qtpy import QtCore
 
 pytestmark = pytest.mark.gui
 ARROW = "\u2192"
-
-
-@pytest.fixture()
-def xray_window(window):
-    """The window with a 400 x 300 px in-memory X-ray (geometry known) on the X-ray step."""
-    from Logic.camera import CarmIntrinsics
-    from Logic.xray import XrayImage
-
-    rows, cols = 300, 400
-    pixels = np.add.outer(np.arange(rows), np.arange(cols)).astype(np.float32)
-    xray = XrayImage(pixels, CarmIntrinsics(1000.0, (0.3, 0.3), (cols, rows)), 600.0, True, "", {})
-    window.set_xray_image(xray)
-    window.set_step(2)
-    ready(window.xray_view)
-    return window
 
 
 def _texts(view) -> dict[int, str]:

@@ -109,13 +109,8 @@ def test_central_and_visible_levels_follow_the_projection():
 # ----------------------------------------------------------------------------------------------- end to end
 
 @pytest.fixture(scope="module")
-def sample(sample_case_dir):
-    from Logic.io_volume import load_volume
-    from Logic.landmarks import read_landmarks_3d
-
-    ct = load_volume(sample_case_dir / "ct.nrrd")
-    labels = np.asarray(load_volume(sample_case_dir / "vertebrae.nrrd").hu).astype(np.uint8)
-    return ct, labels, read_landmarks_3d(sample_case_dir / "ct_centroids.mrk.json")
+def sample(sample_ct):
+    return sample_ct
 
 
 @pytest.fixture(scope="module")
@@ -173,3 +168,17 @@ def test_without_clicks_the_image_alone_names_the_levels_in_view(sample, simulat
     assert score["all_named_correctly"], score["levels"]
     assert np.median(score["unfitted_pde_pose_mm"]) < 3.0
     assert [s.name for s in result.stages if s.extra.get("skipped")] == ["depth", "fine"]
+
+
+def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_work(sample):
+    from Logic.camera import CarmIntrinsics
+    from Logic.pipeline import CarmRegLogic
+
+    ct, _, centroids = sample
+    xray = XrayImage(np.ones((200, 200), np.float32), CarmIntrinsics(1000.0, (1.0, 1.0), (200, 200)), 600.0, True,
+                     "xr")
+    clicks = Landmarks2D(["T12", None, "T11"], np.array([[100.0, 40.0], [100.0, 90.0], [100.0, 140.0]]))
+    with pytest.raises(LandmarkError, match="do not fit consecutive vertebrae in spine order"):
+        CarmRegLogic().prepare(ct, centroids, xray, clicks)
+    state = CarmRegLogic().prepare(ct, centroids, xray, Landmarks2D(["T11", None, "L1"], clicks.uv_px))
+    assert state.pairs is None  # identified in the levels stage

@@ -21,13 +21,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def sample(sample_case_dir):
-    from Logic.io_volume import load_volume
-    from Logic.landmarks import read_landmarks_3d
-
-    ct = load_volume(sample_case_dir / "ct.nrrd")
-    labels = np.asarray(load_volume(sample_case_dir / "vertebrae.nrrd").hu).astype(np.uint8)
-    return ct, labels, read_landmarks_3d(sample_case_dir / "ct_centroids.mrk.json")
+def sample(sample_ct):
+    return sample_ct
 
 
 @pytest.fixture(scope="module")
