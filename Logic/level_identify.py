@@ -257,7 +257,7 @@ def _message(mode: str, status: str, chosen: Hypothesis, other: Hypothesis | Non
         what = "agree with the image" if mode in ("named", "partly_named") else "identified by the image"
         return f"level names {names}: {what}"
     if status == "proposed":
-        return (f"levels {names} PROPOSED from the image alone, without clicks (wrong in 4 of 54 simulated "
+        return (f"levels {names} PROPOSED from the image alone, without clicks (wrong in 6 of 54 simulated "
                 "cases): confirm by clicking the centres of at least 3 vertebrae, named or not")
     if status == "ambiguous":
         return (f"level names AMBIGUOUS: the image fits {alt} about as well as {names}; check another view or "
