@@ -450,6 +450,8 @@ def _drop_results_from(state: RegistrationState, name: str) -> None:
     for stage in later:
         for attribute in fields[stage]:
             setattr(state, attribute, None)
+    if "levels" in later:  # the pairs the levels stage chose are its result too
+        state.pairs = state.given_pairs
     state.stages = [s for s in state.stages if s.name not in later]
 
 

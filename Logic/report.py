@@ -3,7 +3,8 @@
 Files (all written atomically into ``out_dir``):
 - ``result.json``: ``ok`` and ``warnings``; ``level_check`` (which vertebra is which: the mode - named,
   partly_named, unnamed or image_only -, the names assigned to the clicks, the winner and runner-up labellings,
-  the margin between them and the status confident / ambiguous / contradicted; see ``level_identify``);
+  the margin between them and the status confident / ambiguous / contradicted / proposed (no clicks); see
+  ``level_identify``);
   ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
   ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
   ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
@@ -11,8 +12,8 @@ Files (all written atomically into ``out_dir``):
   ``parameters``; ``reproducibility`` (versions, seed).
 - ``overlay.png``: the X-ray with the DRR's bone blended in cyan and every CT-labelled level's projected centroid
   and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings;
-  a banner at the top states how the levels were named and how sure that is (green confident, amber ambiguous,
-  red contradicted).
+  a banner at the top states how the levels were named and how sure that is (green confident, yellow proposed
+  from the image alone, amber ambiguous, red contradicted).
 - ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; 2D image embedded in LPS:
   ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step along columns and rows).
 - ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).

@@ -182,3 +182,16 @@ def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_w
         CarmRegLogic().prepare(ct, centroids, xray, clicks)
     state = CarmRegLogic().prepare(ct, centroids, xray, Landmarks2D(["T11", None, "L1"], clicks.uv_px))
     assert state.pairs is None  # identified in the levels stage
+
+
+def test_overlay_banner_states_mode_status_margin_and_runner_up():
+    from Logic.report import STATUS_RGB, level_banner
+
+    text, rgb = level_banner({"mode": "unnamed", "status": "confident", "margin": 0.121,
+                              "runner_up_labels": ["T11", "T12", "L1"]})
+    assert text == "Levels from unnamed clicks: CONFIDENT (margin +0.121 over T11-L1)"
+    assert rgb == STATUS_RGB["confident"]
+    text, rgb = level_banner({"mode": "image_only", "status": "proposed", "margin": float("inf"),
+                              "runner_up_labels": None})
+    assert text == "Levels from image alone (no clicks): PROPOSED" and rgb == STATUS_RGB["proposed"]
+    assert level_banner(None) is None
