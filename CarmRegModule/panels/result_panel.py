@@ -29,6 +29,15 @@ MODE_TEXT = {"named": "named clicks: their names were checked against the image"
 MAX_HYPOTHESES = 6
 
 
+def _number(value, decimals: int) -> str:
+    """A finite number with ``decimals`` places, else "-" (missing, inf or nan)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return "-"
+    return f"{v:.{decimals}f}" if np.isfinite(v) else "-"
+
+
 def format_margin(margin) -> str:
     """The level check's margin as text ('inf' = no other labelling to compare with)."""
     if margin is None:
@@ -40,8 +49,8 @@ def format_margin(margin) -> str:
 
 
 def ranked_hypotheses(check: dict) -> list[dict]:
-    """The labellings tried, best first: the winner, the runner-up, then the fully refined ones and the
-    screened ones, each by score (the refinement objective: lower is better)."""
+    """The labellings considered, best first: the winner, the runner-up, then the registered ones by score (the
+    refinement objective: lower is better), then those not registered (an implausible magnification)."""
     winner = list(check.get("winner_labels") or check.get("assigned_labels") or [])
     runner_up = list(check.get("runner_up_labels") or [])
 
@@ -210,9 +219,12 @@ class ResultPanel(QtWidgets.QWidget):
         self.hypotheses_table.setRowCount(len(hypotheses))
         winner = list(check.get("winner_labels") or labels)
         for row, h in enumerate(hypotheses):
+            registered = h.get("refined", True)
             cells = [", ".join(h.get("labels") or []) or "-"] + [
-                "-" if h.get(k) is None else f"{float(h[k]):.{d}f}"
+                _number(h.get(k), d) if registered else "-"
                 for k, d in (("score", 3), ("similarity", 3), ("mpde_mm", 2))]
+            if not registered:
+                cells[1] = "not registered"
             for col, text in enumerate(cells):
                 item = QtWidgets.QTableWidgetItem(text)
                 if list(h.get("labels") or []) == winner:
