@@ -138,12 +138,12 @@ def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, out, b, v):
-    """Row v of image b (see _render_batch)."""
+def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out, b, v):
+    """Row v of image b, columns spans[v, 0] <= u < spans[v, 1] (see _render_batch)."""
     n0, n1, n2 = shape
     s0, s1, s2 = src_ijk[b, 0], src_ijk[b, 1], src_ijk[b, 2]
     cv = cam_v_mm[v]
-    for u in range(out.shape[2]):
+    for u in range(spans[v, 0], spans[v, 1]):
         p0 = det0_ijk[b, 0] + u * du_ijk[b, 0] + v * dv_ijk[b, 0]
         p1 = det0_ijk[b, 1] + u * du_ijk[b, 1] + v * dv_ijk[b, 1]
         p2 = det0_ijk[b, 2] + u * du_ijk[b, 2] + v * dv_ijk[b, 2]
@@ -153,26 +153,27 @@ def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, out):
+def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
     """out[b, v, u] = line integral for image b; per-image vectors in the (permuted) ijk units of ``mu``.
 
     The ray of pixel (u, v) runs from ``src_ijk[b]`` to ``det0_ijk[b] + u du_ijk[b] + v dv_ijk[b]`` and its
-    length in mm is sqrt(cam_u_mm[u]^2 + cam_v_mm[v]^2 + sdd_mm^2). Parallel over image rows.
+    length in mm is sqrt(cam_u_mm[u]^2 + cam_v_mm[v]^2 + sdd_mm^2). Only the columns of ``spans`` (rows, 2)
+    are traced; ``out`` keeps its values elsewhere. Parallel over image rows.
     """
     nb, rows = out.shape[0], out.shape[1]
     flat = mu.ravel()
     for task in numba.prange(nb * rows):
-        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, out,
+        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out,
                     task // rows, task % rows)
 
 
 @numba.njit(cache=True, fastmath=True)
-def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, out):
+def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
     """_render_batch on the calling thread (small jobs: no wait for a busy second core)."""
     nb, rows = out.shape[0], out.shape[1]
     flat = mu.ravel()
     for task in range(nb * rows):
-        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, out,
+        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out,
                     task // rows, task % rows)
 
 
@@ -246,11 +247,26 @@ def _ray_setup(level: MuLevel, geometry: CarmGeometry, poses: np.ndarray, intr: 
             axis_ijk)
 
 
+def row_spans(mask: np.ndarray, margin_px: int = 1) -> np.ndarray:
+    """(rows, 2) int64 [first, last + 1) columns per row of ``mask`` (rows, cols) grown by ``margin_px``
+    columns and rows (so central differences inside the mask see rendered neighbours); (0, 0) for rows
+    with nothing to render."""
+    from scipy import ndimage
+
+    grown = ndimage.binary_dilation(mask, iterations=margin_px) if margin_px > 0 else np.asarray(mask, bool)
+    spans = np.zeros((grown.shape[0], 2), np.int64)
+    rows = np.flatnonzero(grown.any(axis=1))
+    spans[rows, 0] = np.argmax(grown[rows], axis=1)
+    spans[rows, 1] = grown.shape[1] - np.argmax(grown[rows, ::-1], axis=1)
+    return spans
+
+
 def render_line_integrals(level: MuLevel, geometry: CarmGeometry, poses,
-                          intrinsics: CarmIntrinsics | None = None) -> np.ndarray:
+                          intrinsics: CarmIntrinsics | None = None, spans: np.ndarray | None = None) -> np.ndarray:
     """Line integrals L (float32) for one pose -> (rows, cols), or poses (b, 6) -> (b, rows, cols).
 
-    ``intrinsics`` overrides the geometry's detector (e.g. a binned one for the coarse stage).
+    ``intrinsics`` overrides the geometry's detector (e.g. a binned one for the coarse stage). ``spans``
+    (``row_spans`` of a region, e.g. the exposed field) limits the traced pixels to it; the others are 0.
     """
     intr = intrinsics or geometry.intrinsics
     single = isinstance(poses, CarmPose) or np.asarray(poses).ndim == 1
@@ -260,11 +276,16 @@ def render_line_integrals(level: MuLevel, geometry: CarmGeometry, poses,
     mu = transposed_mu(level.mu_per_mm, perm)
     order = list(perm)
     cols, rows = intr.size_px
-    out = np.empty((len(p), rows, cols), dtype=np.float32)
+    if spans is None:
+        spans = np.tile(np.array([0, cols], np.int64), (rows, 1))
+        out = np.empty((len(p), rows, cols), dtype=np.float32)
+    else:
+        spans = np.ascontiguousarray(np.clip(spans, 0, cols), dtype=np.int64)
+        out = np.zeros((len(p), rows, cols), dtype=np.float32)
     kernel = _render_serial if out.size * sum(mu.shape) < SERIAL_WORK_LIMIT else _render_batch
     kernel(mu, np.ascontiguousarray(src[:, order]), np.ascontiguousarray(det0[:, order]),
            np.ascontiguousarray(su[:, order]), np.ascontiguousarray(sv[:, order]),
-           cam_u, cam_v, float(intr.sdd_mm), out)
+           cam_u, cam_v, float(intr.sdd_mm), spans, out)
     return out[0] if single else out
 
 

@@ -9,7 +9,8 @@ where the surgeon put them::
     f(p) = (1 - GC(p)) + w_lm * mean_i (PDE_i(p) / s_click)^2 + w_rot * sum_k (theta_k / 10 deg)^2
 
 with PDE in detector mm and ``s_click`` the expected clicking error (detector mm); without clicks the landmark
-term is 0. Whole populations are rendered in one batch. Bounded to +- ``bounds`` about the start, seeded
+term is 0. Whole populations are rendered in one batch, and only over the exposed field (the metrics never
+look outside it, so the scores are the same as from full DRRs). Bounded to +- ``bounds`` about the start, seeded
 (repeatable).
 
 The pipeline runs it twice: a wide coarse pass (``level_identify.coarse_refine_parameters``: 4 mm, large steps,
@@ -27,7 +28,7 @@ import cma
 import numpy as np
 
 from .camera import CarmGeometry
-from .drr_cpu import render_line_integrals
+from .drr_cpu import render_line_integrals, row_spans
 from .pde import pde_mm
 from .similarity import similarity
 from .volume import MuLevel
@@ -62,8 +63,9 @@ class RefineResult:
     objective_end: float = float("nan")
 
 
-def _objective(level, geometry, intrinsics, poses, fixed, mask, points_lps_mm, uv_px, p: RefineParameters):
-    drrs = render_line_integrals(level, geometry, poses, intrinsics)
+def _objective(level, geometry, intrinsics, poses, fixed, mask, points_lps_mm, uv_px, p: RefineParameters,
+               spans=None):
+    drrs = render_line_integrals(level, geometry, poses, intrinsics, spans)
     score = similarity(p.metric, fixed, drrs, mask, dtype=np.float64)  # float64: rankings repeat bit for bit
     rotation = np.sum((poses[:, 3:] / 10.0) ** 2, axis=1)
     if len(points_lps_mm) == 0:
@@ -92,15 +94,19 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         "popsize": p.popsize, "maxfevals": p.max_evaluations, "seed": p.seed, "CMA_stds": list(p.sigma),
         "bounds": [list(x0 - half), list(x0 + half)], "tolfun": 1e-5, "tolx": 1e-3,
         "verbose": -9, "verb_log": 0, "verb_disp": 0})
-    args = (level, geometry, small, None, fmask, points_lps_mm, uv_px, p)
-    f0, s0, _ = _objective(args[0], args[1], args[2], x0[None], fixed, *args[4:])
+    spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it
+
+    def objective(poses):
+        return _objective(level, geometry, small, poses, fixed, fmask, points_lps_mm, uv_px, p, spans)
+
+    f0, s0, _ = objective(x0[None])
     best = (float(f0[0]), float(s0[0]), x0)
     result = RefineResult(x0, float(s0[0]), float(s0[0]), np.inf, 1)
     while not es.stop():
         if should_stop is not None:
             should_stop()
         population = np.asarray(es.ask())
-        f, s, _ = _objective(level, geometry, small, population, fixed, fmask, points_lps_mm, uv_px, p)
+        f, s, _ = objective(population)
         es.tell(list(population), list(f))
         i = int(np.argmin(f))
         if f[i] < best[0]:

@@ -381,6 +381,25 @@ def test_parallel_and_serial_kernels_agree(monkeypatch):
     assert parallel.any() and np.array_equal(parallel, serial)
 
 
+@pytest.mark.parametrize("serial_limit", [0, 10**12], ids=["parallel", "serial"])
+def test_rendering_only_a_region_traces_exactly_its_pixels(serial_limit, monkeypatch):
+    monkeypatch.setattr(drr_cpu, "SERIAL_WORK_LIMIT", serial_limit)
+    level = random_level(seed=5)
+    geometry = CarmGeometry(CarmIntrinsics(900.0, (2.0, 2.0), (20, 16)), (0.0, 0.0, 0.0), 500.0)
+    poses = np.array([[0, 0, 0, 0, 0, 0], [5, -3, 2, 4, -5, 6]], float)
+    v, u = np.mgrid[0:16, 0:20]
+    field = (u - 9.5) ** 2 + (v - 7.5) ** 2 < 6.0 ** 2          # a circular exposed field
+    spans = drr_cpu.row_spans(field, margin_px=1)
+    grown = np.zeros_like(field)
+    for row, (lo, hi) in enumerate(spans):
+        grown[row, lo:hi] = True
+    assert np.all(grown[field]) and not grown[0].any() and spans[0].tolist() == [0, 0]
+    assert grown[1].any() and grown.sum() < field.size  # grown by one row and column, still a region
+    full = render_line_integrals(level, geometry, poses)
+    part = render_line_integrals(level, geometry, poses, spans=spans)
+    assert np.array_equal(part[:, grown], full[:, grown]) and not part[:, ~grown].any()
+
+
 @pytest.mark.parametrize("name", ENGINES)
 def test_batch_equals_loop(name):
     render = engine(name)
