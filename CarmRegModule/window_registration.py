@@ -61,10 +61,10 @@ class WindowRegistration:
         return self.ct_volume, self.ct_store.to_landmarks(), self.xray, self.xray_store.to_landmarks()
 
     def min_xray_clicks(self) -> int:
-        """Fewest X-ray clicks the logic registers with (``Logic.pipeline.MIN_CLICKS`` when it says, else 3,
-        the rule of ``pipeline._given_pairs``); zero clicks is allowed too (image only)."""
+        """Fewest X-ray clicks the logic registers with (``Logic.pipeline.MIN_CLICKS``); zero clicks is allowed
+        too (image only)."""
         try:
-            return int(getattr(_registration_api(), "MIN_CLICKS", 3))
+            return int(_registration_api().MIN_CLICKS)
         except Exception:  # noqa: BLE001 - the logic failed to import: running will report it
             return 3
 
@@ -224,16 +224,14 @@ class WindowRegistration:
 
     def _result_click_ids(self, result) -> list[int]:
         """Point ids of the clicks ``level_check["assigned_labels"]`` names, in its order: the clicks as given
-        to the logic, less the named ones without a CT centroid (the logic leaves those out of the level
-        identification, as it does when pairing by name)."""
+        to the logic, picked by ``level_check["click_indices"]`` (the logic leaves named clicks without a CT
+        centroid out of the identification)."""
         ids = [pid for pid in self._input_click_ids if self.xray_store.get(pid) is not None]
         if len(ids) != len(self.xray_store):  # not from this window's inputs (scripts): the current order
             ids = [p.id for p in self.xray_store.points()]
-        n = len((getattr(result, "level_check", None) or {}).get("assigned_labels") or [])
-        if n and n != len(ids):
-            ct = set(self.ct_store.labels())
-            kept = [pid for pid in ids if self.xray_store.get(pid).label in ct or not self.xray_store.get(pid).label]
-            ids = kept if len(kept) == n else ids
+        indices = (getattr(result, "level_check", None) or {}).get("click_indices")
+        if indices is not None and all(0 <= i < len(ids) for i in indices):
+            return [ids[i] for i in indices]
         return ids
 
     def _show_assigned(self, result, click_ids: list[int]) -> None:

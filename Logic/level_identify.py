@@ -68,7 +68,6 @@ def coarse_refine_parameters() -> RefineParameters:
 
 @dataclass
 class IdentifyParameters:
-    full: RefineParameters = field(default_factory=coarse_refine_parameters)
     candidates: int = 5                     # unnamed clicks: labellings registered first (most plausible)
     max_shift: int = 2                      # named clicks: shifts tried each way
     margin: float = 0.02                    # objective difference between confident and ambiguous
@@ -97,13 +96,14 @@ class LevelIdentification:
     mode: str                               # named | partly_named | unnamed | image_only
     status: str                             # confident | ambiguous | contradicted | proposed (no clicks)
     margin: float
-    order: list                             # click indices in spine order
+    order: list                             # indices into ``click_indices``, spine order
     winner: Hypothesis
     runner_up: Hypothesis | None
     given: Hypothesis | None                # the surgeon's names (named modes)
     hypotheses: list = field(default_factory=list)
     message: str = ""
     visible_labels: list = field(default_factory=list)  # image_only: levels in the exposed field at the winner
+    click_indices: list = field(default_factory=list)   # the given clicks these labels name (see assigned_labels)
 
     @property
     def chosen(self) -> Hypothesis:
@@ -111,7 +111,7 @@ class LevelIdentification:
         return self.given if self.given is not None else self.winner
 
     def assigned_labels(self) -> list:
-        """The name of each click in the order the clicks were given (the chosen labelling)."""
+        """The name of each identified click (``click_indices``, in the order given) in the chosen labelling."""
         out = [""] * len(self.order)
         for k, i in enumerate(self.order):
             out[i] = self.chosen.labels[k]
@@ -120,7 +120,8 @@ class LevelIdentification:
     def as_dict(self) -> dict:
         ru = self.runner_up
         return {"mode": self.mode, "status": self.status, "margin": self.margin, "message": self.message,
-                "assigned_labels": self.assigned_labels(), "winner_labels": list(self.winner.labels),
+                "assigned_labels": self.assigned_labels(), "click_indices": list(self.click_indices),
+                "winner_labels": list(self.winner.labels),
                 "runner_up_labels": list(ru.labels) if ru is not None else None,
                 "visible_labels": list(self.visible_labels),
                 "hypotheses": [h.as_dict() for h in self.hypotheses]}
@@ -130,13 +131,14 @@ class LevelIdentification:
 class IdentifyContext:
     """What every hypothesis fit shares."""
 
-    level: MuLevel                          # mu level of the coarse refinement
+    level: MuLevel                          # mu level of ``refine`` (its mu_spacing_mm)
     geometry: CarmGeometry
     xray_line_integral: np.ndarray
     mask: np.ndarray
     start_ty_mm: float                      # spatial stage's answer
     start_tz_mm: float
-    fine: FineParameters
+    fine: FineParameters                    # anchored landmark search (Algorithm 4)
+    refine: RefineParameters                # the wide coarse image refinement that scores a labelling
     should_stop: object = None
 
 
@@ -162,11 +164,25 @@ def ct_level_names(ct: Landmarks3D) -> list[str]:
 
 def shifted_labels(labels: list[str], shift: int, available: list[str] | set[str]) -> list[str] | None:
     """``labels`` moved ``shift`` places along the available levels (head to sacrum), or None if off the end."""
-    names = [n for n in LEVEL_NAMES if n in set(available)]
+    available = set(available)
+    names = [n for n in LEVEL_NAMES if n in available]
     if not all(lb in names for lb in labels):
         return None
     moved = [names.index(lb) + shift for lb in labels]
     return [names[i] for i in moved] if all(0 <= i < len(names) for i in moved) else None
+
+
+def identifiable_clicks(clicks: Landmarks2D, ct_names: list[str]) -> list[int]:
+    """Indices of the clicks the levels stage works with: unnamed ones, and named ones with a CT centroid
+    (a named click without one is left out, as in pairing by name)."""
+    return [i for i, lb in enumerate(clicks.labels) if lb is None or lb in ct_names]
+
+
+def check_labelling_possible(clicks: Landmarks2D, ct_names: list[str]) -> None:
+    """LandmarkError now, before any registration, when no labelling can satisfy the (partly named) clicks."""
+    used = identifiable_clicks(clicks, ct_names)
+    order = order_along_spine(np.asarray(clicks.uv_px, float)[used])
+    candidate_labellings([clicks.labels[used[k]] for k in order], ct_names, 0)
 
 
 def implied_labels(names_in_order: list, ct_names: list[str]) -> list[str]:
@@ -215,24 +231,24 @@ def candidate_labellings(names_in_order: list, ct_names: list[str], max_shift: i
 
 # ----------------------------------------------------------------------------------------------- fitting
 
-def fit_labelling(ctx: IdentifyContext, points_lps_mm: np.ndarray, uv_px: np.ndarray, refine: RefineParameters,
-                  fine: FineParameters, labels: list, shift: int, full: bool) -> Hypothesis:
-    """Depth search, anchored fine search and image refinement of one labelling (module docstring)."""
-    depth = depth_search(ctx.geometry, ctx.start_ty_mm, ctx.start_tz_mm, points_lps_mm, uv_px)
-    start = np.array([depth.tx_mm, depth.ty_mm, depth.tz_mm, 0.0, 0.0, 0.0])
-    landmark = fine_search(ctx.geometry, start, points_lps_mm, uv_px, fine, should_stop=ctx.should_stop)
-    r = intensity_refine(ctx.level, ctx.geometry, landmark.pose, ctx.xray_line_integral, ctx.mask, points_lps_mm,
-                         uv_px, refine, should_stop=ctx.should_stop)
-    return Hypothesis(list(labels), shift, r.pose, r.objective_end, r.similarity_end, r.mpde_mm, full, landmark.pose)
-
-
-def _unrefined(ctx: IdentifyContext, points_lps_mm: np.ndarray, uv_px: np.ndarray, labels: list, shift: int
-               ) -> Hypothesis:
-    """A labelling before its registration: the depth search's pose (its source depth says how plausible the
-    magnification its click spacing implies is); scores unknown."""
+def unregistered(ctx: IdentifyContext, points_lps_mm: np.ndarray, uv_px: np.ndarray, labels: list, shift: int
+                 ) -> Hypothesis:
+    """A labelling before its registration: the depth search's pose (Algorithm 3; its source depth says how
+    plausible the magnification implied by the click spacing is); scores unknown."""
     depth = depth_search(ctx.geometry, ctx.start_ty_mm, ctx.start_tz_mm, points_lps_mm, uv_px)
     pose = np.array([depth.tx_mm, depth.ty_mm, depth.tz_mm, 0.0, 0.0, 0.0])
     return Hypothesis(list(labels), shift, pose, float("inf"), float("nan"), float("nan"), False, None)
+
+
+def register_labelling(ctx: IdentifyContext, points_lps_mm: np.ndarray, uv_px: np.ndarray, h: Hypothesis
+                       ) -> Hypothesis:
+    """The labelling ``h`` (from ``unregistered``) registered: anchored fine search from its depth pose, then
+    the wide image refinement, which scores it (module docstring)."""
+    landmark = fine_search(ctx.geometry, h.pose, points_lps_mm, uv_px, ctx.fine, should_stop=ctx.should_stop)
+    r = intensity_refine(ctx.level, ctx.geometry, landmark.pose, ctx.xray_line_integral, ctx.mask, points_lps_mm,
+                         uv_px, ctx.refine, should_stop=ctx.should_stop)
+    return Hypothesis(list(h.labels), h.shift, r.pose, r.objective_end, r.similarity_end, r.mpde_mm, True,
+                      landmark.pose)
 
 
 def _decide(hypotheses: list[Hypothesis], given: Hypothesis | None, margin: float
@@ -268,22 +284,24 @@ def _message(mode: str, status: str, chosen: Hypothesis, other: Hypothesis | Non
 
 def identify_levels(ctx: IdentifyContext, ct: Landmarks3D, clicks: Landmarks2D,
                     params: IdentifyParameters | None = None) -> LevelIdentification:
-    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring)."""
+    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
+    Named clicks without a CT centroid are left out (as in pairing by name); ``click_indices`` says which
+    clicks were identified."""
     p = params or IdentifyParameters()
-    order = order_along_spine(clicks.uv_px)
-    uv = np.asarray(clicks.uv_px, float)[order]
-    names = [clicks.labels[i] for i in order]
     ct_names = ct_level_names(ct)
+    used = identifiable_clicks(clicks, ct_names)
+    order = order_along_spine(np.asarray(clicks.uv_px, float)[used])
+    uv = np.asarray(clicks.uv_px, float)[used][order]
+    names = [clicks.labels[used[k]] for k in order]
     ct_map = ct.as_dict()
     labellings, given_index, mode = candidate_labellings(names, ct_names, p.max_shift)
-    hypotheses = [_unrefined(ctx, np.array([ct_map[lb] for lb in labels]), uv, labels, shift)
+    hypotheses = [unregistered(ctx, np.array([ct_map[lb] for lb in labels]), uv, labels, shift)
                   for shift, labels in labellings]
 
     def refine(i: int) -> None:
         h = hypotheses[i]
         if not h.refined:
-            points = np.array([ct_map[lb] for lb in h.labels])
-            hypotheses[i] = fit_labelling(ctx, points, uv, p.full, ctx.fine, h.labels, h.shift, True)
+            hypotheses[i] = register_labelling(ctx, np.array([ct_map[lb] for lb in h.labels]), uv, h)
 
     if given_index is None:  # the most plausible magnifications first (source depth nearest the nominal)
         first = np.argsort([abs(h.pose[0]) for h in hypotheses], kind="stable")[:p.candidates].tolist()
@@ -302,7 +320,8 @@ def identify_levels(ctx: IdentifyContext, ct: Landmarks3D, clicks: Landmarks2D,
     status, margin, winner, runner_up = _decide(hypotheses, given, p.margin)
     chosen = given if given is not None else winner
     message = _message(mode, status, chosen, runner_up)
-    return LevelIdentification(mode, status, margin, order.tolist(), winner, runner_up, given, hypotheses, message)
+    return LevelIdentification(mode, status, margin, order.tolist(), winner, runner_up, given, hypotheses, message,
+                               click_indices=used)
 
 
 # ----------------------------------------------------------------------------------------------- no clicks
@@ -361,12 +380,11 @@ def identify_from_image(ctx: IdentifyContext, ct: Landmarks3D, score_map: np.nda
     with its pose moved one level up and down along the spine (the look-alike neighbours); decide as above.
     A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py)."""
     p = params or IdentifyParameters()
-    refine = replace(p.full, landmark_weight=0.0)
-    empty_points, empty_uv = np.zeros((0, 3)), np.zeros((0, 2))
+    empty_points, empty_uv = np.zeros((0, 3)), np.zeros((0, 2))  # no clicks: no landmark term
 
     def fit(start: np.ndarray, shift: int) -> Hypothesis:
         r = intensity_refine(ctx.level, ctx.geometry, start, ctx.xray_line_integral, ctx.mask, empty_points,
-                             empty_uv, refine, should_stop=ctx.should_stop)
+                             empty_uv, ctx.refine, should_stop=ctx.should_stop)
         return Hypothesis([], shift, r.pose, r.objective_end, r.similarity_end, float("nan"), True, start)
 
     starts = [np.array([tx_mm, ty, tz, 0.0, 0.0, 0.0]) for ty, tz in

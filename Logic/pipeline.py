@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,12 +46,12 @@ from .level_identify import (
     IdentifyContext,
     IdentifyParameters,
     LevelIdentification,
-    candidate_labellings,
+    check_labelling_possible,
     coarse_refine_parameters,
     ct_level_names,
+    identifiable_clicks,
     identify_from_image,
     identify_levels,
-    order_along_spine,
 )
 from .pde import mpde_mm, pde_mm
 from .similarity import METRICS
@@ -92,8 +92,7 @@ class RegistrationParameters:
         d = dict(self.__dict__)
         for name in ("fine", "refine", "refine_coarse"):
             d[name] = dict(getattr(self, name).__dict__)
-        d["identify"] = {k: (dict(v.__dict__) if hasattr(v, "__dict__") else v)
-                         for k, v in self.identify.__dict__.items()}
+        d["identify"] = dict(self.identify.__dict__)
         return d
 
 
@@ -309,17 +308,15 @@ class CarmRegLogic:
             return {"enabled": False}
         ctx = IdentifyContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
                               state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
-                              p.fine, self._check_cancel)
-        ident_params = replace(p.identify, full=p.refine_coarse)
+                              p.fine, p.refine_coarse, self._check_cancel)
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        ident_params)
+                                        p.identify)
         else:
-            used = _clicks_with_ct_level(state.ct_landmarks, clicks)
-            ident = identify_levels(ctx, state.ct_landmarks, used, ident_params)
+            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify)
             chosen = ident.chosen
-            uv = np.asarray(used.uv_px, float)[ident.order]
+            uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
             state.pairs = Pairs(list(chosen.labels), np.array([ct[lb] for lb in chosen.labels]), uv, [])
         state.identification = ident
@@ -335,9 +332,8 @@ class CarmRegLogic:
             else (np.zeros((0, 3)), np.zeros((0, 2)))
         coarse_pose, reused = self._coarse_refined_pose(state, points, uv)
         self._report("refine", 0.5, "local image refinement")
-        local = p.refine if state.pairs is not None else replace(p.refine, landmark_weight=0.0)
         r = intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), state.geometry, coarse_pose,
-                             state.xray_line_integral, state.mask, points, uv, local, should_stop=self._check_cancel)
+                             state.xray_line_integral, state.mask, points, uv, p.refine, should_stop=self._check_cancel)
         state.refine = r
         accepted = state.pairs is None or r.mpde_mm <= p.refine_max_mpde_mm
         if accepted:
@@ -482,18 +478,8 @@ def _given_pairs(ct_landmarks: Landmarks3D, xray_landmarks: Landmarks2D) -> tupl
         raise LandmarkError(f"only {n} X-ray click(s): click the centres of at least {MIN_CLICKS} adjacent "
                             "vertebrae (named or not), or none to identify the levels from the image alone")
     if n:  # unnamed or partly named: refuse now, not after the database, what no labelling can satisfy
-        clicks = _clicks_with_ct_level(ct_landmarks, xray_landmarks)
-        names = [clicks.labels[i] for i in order_along_spine(clicks.uv_px)]
-        candidate_labellings(names, ct_level_names(ct_landmarks), 0)
+        check_labelling_possible(xray_landmarks, ct_level_names(ct_landmarks))
     return None, spine_order_warnings(ct_landmarks)
-
-
-def _clicks_with_ct_level(ct_landmarks: Landmarks3D, x: Landmarks2D) -> Landmarks2D:
-    """The clicks the levels stage works with: named clicks without a CT centroid are left out (as in
-    pairing by name); unnamed ones all stay."""
-    ct = set(ct_landmarks.labels)
-    keep = [i for i, lb in enumerate(x.labels) if lb is None or lb in ct]
-    return Landmarks2D([x.labels[i] for i in keep], np.asarray(x.uv_px, float)[keep], x.source)
 
 
 def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, clicks: Landmarks2D) -> None:
@@ -505,7 +491,7 @@ def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, cli
                             f"lie outside the CT volume {ct.source}: check the landmark file's coordinate system "
                             "(LPS vs RAS) and that it belongs to this CT")
     cols, rows = xray.size_px
-    used = [i for i, lb in enumerate(clicks.labels) if lb is None or lb in set(ct_landmarks.labels)]
+    used = identifiable_clicks(clicks, ct_level_names(ct_landmarks))
     uv_all = np.asarray(clicks.uv_px, float).reshape(-1, 2)[used]
     off = [clicks.labels[i] or f"unnamed click {i + 1}" for i, uv in zip(used, uv_all, strict=True)
            if not _in_image(uv, (cols, rows))]

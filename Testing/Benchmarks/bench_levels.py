@@ -34,31 +34,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_registration import load_case  # noqa: E402
+from bench_registration import load_case, simulate  # noqa: E402
 from second_ct import load_second_ct  # noqa: E402
 
 from Logic.evaluation import evaluate  # noqa: E402
 from Logic.landmarks import Landmarks2D  # noqa: E402
 from Logic.level_identify import shifted_labels  # noqa: E402
 from Logic.pipeline import CarmRegLogic, RegistrationParameters  # noqa: E402
-from Logic.simulate import SimulationOptions, default_geometry, random_pose, sample_options, simulate_case  # noqa: E402
-from Logic.xray import XrayImage  # noqa: E402
 
 MODES = ("unnamed", "none", "named", "wrong")
-
-
-def simulate(ct, labels, centroids, seed: int, size_px: int):
-    """One realistic case (module docstring); the aim level leaves room for +-2 levels where the CT allows."""
-    rng = np.random.default_rng(1000 + seed)
-    base = SimulationOptions(size_px=(size_px, size_px), pixel_spacing_mm=0.25 * 1024 / size_px)
-    options = sample_options(rng, base)
-    geometry = default_geometry(ct, options)
-    names = centroids.sorted().labels
-    inner = names[2:-2] if len(names) > 5 else names[1:-1]
-    pose = random_pose(rng, options, centroids, inner[int(rng.integers(len(inner)))], geometry=geometry)
-    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=seed)
-    xray = XrayImage(sim.pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, True, f"sim-{seed}")
-    return sim, xray, rng
 
 
 def clicks_for(mode: str, sim, centroids, rng) -> Landmarks2D | None:

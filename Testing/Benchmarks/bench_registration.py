@@ -41,15 +41,18 @@ def load_case():
 
 
 def simulate(ct, labels, centroids, seed: int, size_px: int):
+    """One realistic case: (simulation, X-ray, the case's random generator for any further draws). The aim level
+    leaves +-2 levels of room inside the labelled range (+-1 on a short one)."""
     rng = np.random.default_rng(1000 + seed)
     base = SimulationOptions(size_px=(size_px, size_px), pixel_spacing_mm=0.25 * 1024 / size_px)
     options = sample_options(rng, base)
     geometry = default_geometry(ct, options)
-    inner = centroids.sorted().labels[2:-2]  # keep +-2 levels of room inside the labelled range
+    names = centroids.sorted().labels
+    inner = names[2:-2] if len(names) > 5 else names[1:-1]
     pose = random_pose(rng, options, centroids, inner[int(rng.integers(len(inner)))], geometry=geometry)
     sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=seed)
     xray = XrayImage(sim.pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, True, f"sim-{seed}")
-    return sim, xray
+    return sim, xray, rng
 
 
 def run_case(ct, centroids, sim, xray, params, clicks=None):
@@ -161,7 +164,7 @@ def main(argv=None) -> int:
         rotation_weight_mm_per_deg2=0.0, bounds=(200, 200, 200, 90, 90, 90), sigma=(10, 3, 3, 20, 20, 20)))
     rows, free_rows, shifted_rows = [], [], []
     for seed in range(args.cases):
-        sim, xray = simulate(ct, labels, centroids, seed, args.size_px)
+        sim, xray, _ = simulate(ct, labels, centroids, seed, args.size_px)
         row = run_case(ct, centroids, sim, xray, params)
         rows.append(row)
         if args.unanchored:

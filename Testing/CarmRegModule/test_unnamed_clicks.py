@@ -215,7 +215,8 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
     assert not panel.run_button.isEnabled()
 
 
-def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=None, visible=None):
+def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=None, visible=None,
+                 click_indices=None):
     """A RegistrationResult stand-in with a level_check, for the display without running the pipeline."""
     from Logic.camera import CarmGeometry, CarmPose
     from Logic.landmarks import level_index
@@ -234,7 +235,8 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
                "contradicted": "level names CONTRADICTED: check them"}[status]
     check = {"mode": mode, "status": status, "margin": margin, "assigned_labels": list(assigned),
              "winner_labels": winner, "runner_up_labels": runner_up, "message": message, "hypotheses": hypotheses,
-             "visible_labels": list(visible or assigned)}
+             "visible_labels": list(visible or assigned),
+             "click_indices": list(range(len(assigned)) if click_indices is None else click_indices)}
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=[], levels=levels, drr_line_integral=None, convergence=[],
                            ok=status != "contradicted", warnings=[], magnification=1.6, level_check=check)
@@ -318,7 +320,7 @@ def test_a_named_click_without_ct_centroid_is_skipped_when_mapping_the_assigned_
     store.add(None, [140.0, 60.0])
     store.add(None, [150.0, 150.0])
     assert store.to_landmarks().labels == ["L4", None, None]
-    win.set_result(_fake_result(win, ["T11", "T12"], "confident", "unnamed", 0.2, ["T10", "T11"]))
+    win.set_result(_fake_result(win, ["T11", "T12"], "confident", "unnamed", 0.2, ["T10", "T11"], click_indices=[1, 2]))
     assert sorted(_texts(win.xray_view).values()) == [f"?1 {ARROW} T11", f"?2 {ARROW} T12", "L4"]
     assert win.accept_assigned_names(ask=True) and store.labels() == ["T11", "T12", "L4"]
     assert win.dialogs.messages == []  # confident: no question asked

@@ -141,6 +141,7 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(sample, simulat
     result, score = _register(sample, simulated, clicks, tmp_path)
     check = result.level_check
     assert check["mode"] == "unnamed" and check["status"] == "confident", check["message"]
+    assert check["click_indices"] == [0, 1, 2]
     assert check["assigned_labels"] == [sim.clicks.labels[i] for i in shuffled]
     assert check["margin"] >= 0.02 and check["runner_up_labels"] != check["winner_labels"]
     assert result.ok and score["all_named_correctly"]
