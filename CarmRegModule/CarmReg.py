@@ -34,7 +34,7 @@ class CarmReg:
 
 def __getattr__(name):
     if name == "CarmRegLogic":
-        from Logic.pipeline import CarmRegLogic
+        from carmreg.logic.registration.pipeline import CarmRegLogic
         return CarmRegLogic
     raise AttributeError(name)
 
@@ -46,11 +46,11 @@ class CarmRegTest(unittest.TestCase):
         self.test_sample_case()
 
     def test_sample_case(self):
-        from Logic.io_volume import load_volume
-        from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
-        from Logic.pipeline import CarmRegLogic
-        from Logic.resources import sample_case
-        from Logic.xray import load_xray
+        from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
+        from carmreg.logic.io.volumes import load_volume
+        from carmreg.logic.io.xray import load_xray
+        from carmreg.logic.registration.pipeline import CarmRegLogic
+        from carmreg.logic.resources import sample_case
 
         paths = sample_case()
         result = CarmRegLogic().register(load_volume(paths["ct"]), read_landmarks_3d(paths["ct_landmarks"]),

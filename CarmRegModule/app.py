@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from Logic.errors import CarmRegError, InputFileError
+from carmreg.logic.errors import CarmRegError, InputFileError
 
 from .qt_common import ScriptedDialogs, ensure_app, process_events
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from Logic.errors import CarmRegError
+from carmreg.logic.errors import CarmRegError
 
 EXIT_OK, EXIT_CHECKS_FAILED, EXIT_USER_ERROR = 0, 1, 2
 
@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
-    from Logic.similarity import METRICS
+    from carmreg.logic.similarity.metrics import METRICS
 
     p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
     p.add_argument("--all-metrics", action="store_true",
@@ -126,8 +126,8 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
 # ---------------------------------------------------------------------------------------------- commands
 
 def _parameters(args):
-    from Logic.pipeline import RegistrationParameters
-    from Logic.resources import cache_dir
+    from carmreg.logic.registration.pipeline import RegistrationParameters
+    from carmreg.logic.resources import cache_dir
 
     params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics,
                                     level_check=not args.no_level_check,
@@ -145,7 +145,7 @@ def _spacing(values):
 
 
 def _load_xray(args):
-    from Logic.xray import load_xray
+    from carmreg.logic.io.xray import load_xray
 
     return load_xray(args.xray, sdd_mm=args.sdd_mm, pixel_spacing_mm=_spacing(args.pixel_spacing_mm),
                      principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
@@ -154,7 +154,7 @@ def _load_xray(args):
 
 def _xray_clicks(xray, xray_lm_path, clicks: str = "named"):
     """The X-ray clicks: from the file (``clicks`` named), with their names dropped (unnamed), or none."""
-    from Logic.landmarks import Landmarks2D, read_landmarks_2d
+    from carmreg.logic.io.landmarks import Landmarks2D, read_landmarks_2d
 
     if xray_lm_path is None or clicks == "none":
         return Landmarks2D([], np.zeros((0, 2)), "no clicks")
@@ -163,10 +163,10 @@ def _xray_clicks(xray, xray_lm_path, clicks: str = "named"):
 
 
 def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None, clicks="named"):
-    from Logic.io_volume import load_volume
-    from Logic.landmarks import read_landmarks_3d
-    from Logic.pipeline import CarmRegLogic
-    from Logic.report import save_result
+    from carmreg.logic.io.landmarks import read_landmarks_3d
+    from carmreg.logic.io.volumes import load_volume
+    from carmreg.logic.registration.pipeline import CarmRegLogic
+    from carmreg.logic.report.result_files import save_result
 
     t0 = time.perf_counter()
     ct = load_volume(ct_path, series_uid=series_uid)
@@ -240,10 +240,10 @@ def cmd_register(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from Logic.evaluation import evaluate
-    from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
-    from Logic.resources import sample_case
-    from Logic.xray import load_xray
+    from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
+    from carmreg.logic.io.xray import load_xray
+    from carmreg.logic.resources import sample_case
+    from carmreg.logic.simulation.evaluation import evaluate
 
     _check_out_dir(args.out)
     case = sample_case()
@@ -269,11 +269,11 @@ def cmd_demo(args) -> int:
 
 
 def cmd_drr(args) -> int:
-    from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
-    from Logic.io_volume import load_volume
-    from Logic.report import save_png, to_uint8, write_drr_nrrd
-    from Logic.resources import sample_case
-    from Logic.volume import MuPyramid
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+    from carmreg.logic.geometry.volume import MuPyramid
+    from carmreg.logic.io.volumes import load_volume
+    from carmreg.logic.report.result_files import save_png, to_uint8, write_drr_nrrd
+    from carmreg.logic.resources import sample_case
 
     if not np.all(np.isfinite(args.pose)):
         raise CarmRegError("--pose must be six finite numbers: tx ty tz (mm) rx ry rz (degrees)")
@@ -293,10 +293,10 @@ def cmd_drr(args) -> int:
     pose = CarmPose.from_array(args.pose)
     t0 = time.perf_counter()
     if args.engine == "vtk":
-        from Logic.drr_vtk import render_line_integrals_vtk
+        from carmreg.logic.drr.vtk_raycast import render_line_integrals_vtk
         drr = render_line_integrals_vtk(MuPyramid(ct).level(None), geometry, pose)
     else:
-        from Logic.drr_cpu import render_line_integrals
+        from carmreg.logic.drr.cpu import render_line_integrals
         drr = render_line_integrals(MuPyramid(ct).level(None), geometry, pose)
     seconds = time.perf_counter() - t0
     prefix = Path(args.out)
@@ -309,20 +309,20 @@ def cmd_drr(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from Logic import simulate
+    from carmreg.logic.simulation import simulator as simulate
 
     return simulate.run_cli(args)
 
 
 def cmd_gui(args) -> int:
-    from CarmRegModule.app import run_gui
+    from carmreg.app import run_gui
 
     return run_gui(ct=args.ct, xray=args.xray, ct_landmarks=args.ct_landmarks,
                    xray_landmarks=args.xray_landmarks, sample=args.sample)
 
 
 def cmd_screenshot(args) -> int:
-    from CarmRegModule.app import export_screenshots
+    from carmreg.app import export_screenshots
 
     for path in export_screenshots(args.out, sample=True):
         print(f"wrote {path}")

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 from qtpy import QtCore, QtGui, QtWidgets
 
-from Logic import session as session_io
-from Logic.errors import InputFileError, LandmarkError
-from Logic.landmarks import read_landmarks_2d, read_landmarks_3d, write_landmarks_2d, write_landmarks_3d
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io import session as session_io
+from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d, write_landmarks_2d, write_landmarks_3d
+from carmreg.logic.resources import ICON_PATH
 
 from .panels.geometry_panel import GeometryPanel
 from .panels.landmark_panel import LandmarkPanel
@@ -88,7 +89,7 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self._autosave_timer.timeout.connect(self.autosave_now)
         self._points3d_timer = QtCore.QTimer(self, singleShot=True, interval=250)
         self._points3d_timer.timeout.connect(self._update_3d_points)
-        icon = Path(__file__).resolve().parent.parent / "Resources" / "Icons" / "carmreg.svg"
+        icon = ICON_PATH
         if icon.is_file():
             self.setWindowIcon(QtGui.QIcon(str(icon)))
         self.resize(1560, 960)
@@ -271,8 +272,8 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
 
     # =========================================================================================== data
     def load_ct(self, path: str | Path) -> None:
-        """Load a CT through ``Logic.io_volume.load_volume`` (raises CarmRegError on bad input)."""
-        from Logic.io_volume import load_volume
+        """Load a CT through ``carmreg.logic.io.volumes.load_volume`` (raises CarmRegError on bad input)."""
+        from carmreg.logic.io.volumes import load_volume
 
         self._busy(f"Loading CT {Path(path).name}...")
         try:
@@ -303,8 +304,8 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self._inputs_changed()
 
     def load_xray(self, path: str | Path, overrides: dict | None = None) -> None:
-        """Load an X-ray through ``Logic.xray.load_xray`` with the geometry overrides (raises CarmRegError)."""
-        from Logic.xray import load_xray
+        """Load an X-ray (``carmreg.logic.io.xray.load_xray``) with the geometry overrides (raises CarmRegError)."""
+        from carmreg.logic.io.xray import load_xray
 
         overrides = dict(self.geometry_overrides if overrides is None else overrides)
         xray = load_xray(path, **_geometry_kwargs(overrides))
@@ -338,7 +339,9 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         if self.xray_path:
             self.load_xray(self.xray_path, overrides)
             return
-        from Logic.camera import CarmIntrinsics  # in-memory image (tests, scripts): same rules, no file
+        from carmreg.logic.geometry.camera import (
+            CarmIntrinsics,  # in-memory image (tests, scripts): same rules, no file
+        )
 
         intr = self.xray.intrinsics
         kw = _geometry_kwargs(overrides)
@@ -353,7 +356,7 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
 
     def load_sample_case(self) -> None:
         """Load the embedded sample: CT, X-ray (DICOM with geometry) and the centroids on both."""
-        from Logic.resources import sample_case
+        from carmreg.logic.resources import sample_case
 
         paths = sample_case()
         self.new_session(ask=False)
@@ -392,8 +395,12 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
 
     def propose_centroids(self, label_map_path: str | Path, mode: str = "replace") -> list[str]:
         """Centroids of the complete vertebrae of a label map on this CT (``Logic.vertebrae``)."""
-        from Logic.io_volume import load_volume
-        from Logic.vertebrae import CARMREG_VERTEBRAE, TOTALSEGMENTATOR_V2_VERTEBRAE, centroids_from_labels
+        from carmreg.logic.geometry.vertebrae import (
+            CARMREG_VERTEBRAE,
+            TOTALSEGMENTATOR_V2_VERTEBRAE,
+            centroids_from_labels,
+        )
+        from carmreg.logic.io.volumes import load_volume
 
         labels_volume = load_volume(label_map_path)
         labels = np.rint(np.asarray(labels_volume.hu, np.float32)).astype(np.int32)

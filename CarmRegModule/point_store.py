@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from qtpy import QtCore, QtGui
 
-from Logic.errors import LandmarkError
-from Logic.landmarks import (
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.io.landmarks import (
     LEVEL_NAMES,
     Landmarks2D,
     Landmarks3D,

@@ -12,8 +12,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from Logic.errors import InputFileError
-from Logic.resources import PRESETS_DIR
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.resources import PRESETS_DIR
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import traceback
 import numpy as np
 from qtpy import QtCore, QtGui, QtWidgets
 
-from Logic.errors import CancelledError, CarmRegError
+from carmreg.logic.errors import CancelledError, CarmRegError
 
 LOG = logging.getLogger("carmreg.gui")
 # level identification status -> colour (green sure, yellow proposed from the image alone, amber, red)
@@ -238,7 +238,7 @@ def robust_range(image: np.ndarray, low_pct: float = 1.0, high_pct: float = 99.5
 
 def save_widget_png(widget: QtWidgets.QWidget, path) -> str:
     """Grab a widget (works offscreen) and write it as PNG atomically."""
-    from Logic.atomic import atomic_write
+    from carmreg.logic.io.atomic import atomic_write
 
     pixmap = widget.grab()
 

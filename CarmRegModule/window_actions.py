@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from qtpy import QtCore, QtGui, QtWidgets
 
-from Logic.errors import CarmRegError, InputFileError
+from carmreg.logic.errors import CarmRegError, InputFileError
 
 from .qt_common import report_errors
 
@@ -259,7 +259,7 @@ class WindowActions:
             self.save_screenshot(path, view)
 
     def _action_about(self, *_):
-        from Logic import __version__
+        from carmreg.logic import __version__
         self.dialogs.info("About CarmReg",
                           f"CarmReg {__version__}\nRegisters a preoperative CT to an intraoperative C-arm X-ray "
                           "by vertebral centroids (hierarchical 3D-2D registration).\nWorld frame: CT patient "

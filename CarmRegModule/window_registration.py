@@ -16,8 +16,8 @@ import logging
 import time
 from pathlib import Path
 
-from Logic import session as session_io
-from Logic.errors import CancelledError, CarmRegError, GeometryError, InputFileError, RegistrationError
+from carmreg.logic.errors import CancelledError, CarmRegError, GeometryError, InputFileError, RegistrationError
+from carmreg.logic.io import session as session_io
 
 from .qt_common import process_events, report_errors
 from .worker import RegistrationWorker
@@ -27,7 +27,7 @@ LOG = logging.getLogger("carmreg.gui")
 
 def _registration_api():
     """The pipeline's names, imported late so the GUI starts even if the logic has an import problem."""
-    from Logic import pipeline
+    from carmreg.logic.registration import pipeline
     return pipeline
 
 
@@ -43,7 +43,7 @@ class WindowRegistration:
 
     def _metrics(self) -> tuple[str, ...]:
         try:
-            from Logic.similarity import METRICS
+            from carmreg.logic.similarity.metrics import METRICS
             return tuple(METRICS)
         except Exception:  # noqa: BLE001
             return ("gc",)
@@ -61,8 +61,8 @@ class WindowRegistration:
         return self.ct_volume, self.ct_store.to_landmarks(), self.xray, self.xray_store.to_landmarks()
 
     def min_xray_clicks(self) -> int:
-        """Fewest X-ray clicks the logic registers with (``Logic.pipeline.MIN_CLICKS``); zero clicks is allowed
-        too (image only)."""
+        """Fewest X-ray clicks the logic registers with (``registration.pipeline.MIN_CLICKS``); zero clicks is
+        allowed too (image only)."""
         try:
             return int(_registration_api().MIN_CLICKS)
         except Exception:  # noqa: BLE001 - the logic failed to import: running will report it
@@ -79,7 +79,7 @@ class WindowRegistration:
         return "unnamed" if unnamed == n else "partly_named"
 
     def registration_parameters(self):
-        from Logic.resources import cache_dir
+        from carmreg.logic.resources import cache_dir
 
         api = _registration_api()
         chosen = self.registration_panel.parameters()

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from qtpy import QtGui
 
-from Logic import session as session_io
-from Logic.errors import CarmRegError
+from carmreg.logic.errors import CarmRegError
+from carmreg.logic.io import session as session_io
 
 LOG = logging.getLogger("carmreg.gui")
 

@@ -13,7 +13,7 @@ import traceback
 
 from qtpy import QtCore
 
-from Logic.errors import CancelledError
+from carmreg.logic.errors import CancelledError
 
 
 class RegistrationWorker(QtCore.QThread):

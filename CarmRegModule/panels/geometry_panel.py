@@ -2,7 +2,7 @@
 
 Values shown are those the X-ray carries after the user's overrides; the right-hand column says where each
 came from (DICOM tag, preset, entered by hand, default). Editing a field or choosing a preset emits
-``overrides_changed(dict)``; the window then reloads the X-ray through ``Logic.xray.load_xray`` with those
+``overrides_changed(dict)``; the window then reloads the X-ray through ``carmreg.logic.io.xray.load_xray`` with those
 overrides, so the logic, not the widget, decides what the geometry is.
 """
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from qtpy import QtCore, QtWidgets
 
-from Logic.errors import CarmRegError
-from Logic.landmarks import LEVEL_NAMES
+from carmreg.logic.errors import CarmRegError
+from carmreg.logic.io.landmarks import LEVEL_NAMES
 
 from ..qt_common import report_errors
 

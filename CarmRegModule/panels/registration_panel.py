@@ -1,6 +1,7 @@
 """Registration controls: run all stages or one at a time, progress and cancel, mPDE per stage, convergence.
 
-Stages (method paper; the order comes from ``Logic.pipeline.STAGES``): ``database`` (coarse DRRs over Ty, Tz),
+Stages (method paper; the order comes from ``carmreg.logic.registration.pipeline.STAGES``): ``database``
+(coarse DRRs over Ty, Tz),
 ``spatial`` (similarity search -> Ty, Tz), ``levels`` (beyond the paper: identify or check the level names of
 the X-ray clicks - every plausible assignment along the spine registered and scored by image similarity and
 landmark fit), ``depth`` (source-detector search on intervertebral distances -> Tx), ``fine`` (CMA-ES on the

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from qtpy import QtCore, QtWidgets
 
-from Logic.camera import POSE_NAMES
+from carmreg.logic.geometry.camera import POSE_NAMES
 
 from ..overlay_images import MODES
 from ..qt_common import STATUS_COLORS

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from qtpy import QtCore, QtGui, QtWidgets
 
-from Logic.landmarks import LEVEL_NAMES
+from carmreg.logic.io.landmarks import LEVEL_NAMES
 
 from ..qt_common import POINT_COLOR, SELECTED_COLOR, gray_qimage, rgb_qimage, robust_range, window_to_uint8
 

@@ -35,7 +35,7 @@ class OverlayView(ImageCanvas):
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "") -> None:
-        from Logic.xray_prep import field_mask
+        from carmreg.logic.image.prepare import field_mask
 
         mask = field_mask(xray_pixels, bone_dark)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)

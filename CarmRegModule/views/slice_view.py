@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from qtpy import QtCore, QtGui
 
-from Logic.volume import Volume
+from carmreg.logic.geometry.volume import Volume
 
 from ..qt_common import SELECTED_COLOR
 from .image_canvas import ImageCanvas

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from qtpy import QtCore, QtWidgets
 
-from Logic.landmarks import LEVEL_NAMES
+from carmreg.logic.io.landmarks import LEVEL_NAMES
 
 from ..qt_common import STATUS_COLORS, robust_range
 from .image_canvas import ImageCanvas, MarkerSpec
@@ -86,7 +86,7 @@ class XrayView(ImageCanvas):
         self._field = None
         self.set_image(None if pixels is None else np.asarray(pixels, np.float32))
         if pixels is not None:
-            from Logic.xray_prep import field_mask
+            from carmreg.logic.image.prepare import field_mask
 
             lo, hi = float(np.nanmin(pixels)), float(np.nanmax(pixels))
             self._data_range = (lo, hi if hi > lo else lo + 1.0)

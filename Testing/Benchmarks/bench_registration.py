@@ -22,15 +22,21 @@ from pathlib import Path
 
 import numpy as np
 
-from Logic.evaluation import evaluate
-from Logic.fine_search import FineParameters
-from Logic.io_volume import load_volume
-from Logic.landmarks import read_landmarks_3d
-from Logic.pipeline import CarmRegLogic, RegistrationParameters
-from Logic.resources import sample_case
-from Logic.similarity import METRICS
-from Logic.simulate import SimulationOptions, default_geometry, random_pose, sample_options, simulate_case
-from Logic.xray import XrayImage
+from carmreg.logic.io.landmarks import read_landmarks_3d
+from carmreg.logic.io.volumes import load_volume
+from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.fine import FineParameters
+from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
+from carmreg.logic.resources import sample_case
+from carmreg.logic.similarity.metrics import METRICS
+from carmreg.logic.simulation.evaluation import evaluate
+from carmreg.logic.simulation.simulator import (
+    SimulationOptions,
+    default_geometry,
+    random_pose,
+    sample_options,
+    simulate_case,
+)
 
 
 def load_case():
@@ -74,8 +80,8 @@ def run_case(ct, centroids, sim, xray, params, clicks=None):
 
 def shifted_clicks(sim, centroids, shift: int = 1):
     """The same clicks with every label moved one level caudally (T10, T11, T12 -> T11, T12, L1)."""
-    from Logic.landmarks import Landmarks2D
-    from Logic.level_identify import shifted_labels
+    from carmreg.logic.io.landmarks import Landmarks2D
+    from carmreg.logic.registration.levels import shifted_labels
 
     labels = shifted_labels(sim.clicks.labels, shift, set(centroids.labels))
     return None if labels is None else Landmarks2D(labels, sim.clicks.uv_px, "shifted")

@@ -7,7 +7,7 @@ It has no vertebra segmentation, so:
   ``data/example_ct_centroids.mrk.json``, derived by ``scripts/label_example_ct.py`` (disc detection along the
   vertebral bodies, names anchored to the TotalSegmentator labels of the crop ``example_seg.nii.gz``);
 - the vertebra label map the simulator needs (each level moves rigidly on its own) is built from those
-  centroids by ``Logic.vertebrae.label_map_from_centroids``: bone voxels (HU > 150) within
+  centroids by ``carmreg.logic.geometry.vertebrae.label_map_from_centroids``: bone voxels (HU > 150) within
   ``LABEL_RADIUS_MM`` of the spine polyline, cut into slabs at the midpoints between centroids.
 
 The CT itself is never copied into the repository; without ../shared the loader returns None.
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from Logic.io_volume import load_volume
-from Logic.landmarks import Landmarks3D, read_landmarks_3d
-from Logic.vertebrae import label_map_from_centroids
-from Logic.volume import Volume
+from carmreg.logic.geometry.vertebrae import label_map_from_centroids
+from carmreg.logic.geometry.volume import Volume
+from carmreg.logic.io.landmarks import Landmarks3D, read_landmarks_3d
+from carmreg.logic.io.volumes import load_volume
 
 CENTROIDS_PATH = Path(__file__).resolve().parent / "data" / "example_ct_centroids.mrk.json"
 CT_RELATIVE_PATH = Path("data") / "totalsegmentator-tests" / "example_ct.nii.gz"

@@ -40,18 +40,18 @@ def qapp():
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     if not _qt_can_start():
         pytest.skip("Qt cannot start on this machine")
-    from CarmRegModule.qt_common import ensure_app
+    from carmreg.qt_common import ensure_app
     return ensure_app()
 
 
 @pytest.fixture(scope="session")
 def synthetic_case(tmp_path_factory) -> SyntheticCase:
-    from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
-    from Logic.drr_cpu import render_line_integrals
-    from Logic.io_volume import write_volume_nrrd
-    from Logic.landmarks import Landmarks2D, Landmarks3D, write_landmarks_2d, write_landmarks_3d
-    from Logic.volume import MuPyramid
-    from Logic.xray import write_png16, write_xray_dicom
+    from carmreg.logic.drr.cpu import render_line_integrals
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+    from carmreg.logic.geometry.volume import MuPyramid
+    from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, write_landmarks_2d, write_landmarks_3d
+    from carmreg.logic.io.volumes import write_volume_nrrd
+    from carmreg.logic.io.xray import write_png16, write_xray_dicom
 
     folder = tmp_path_factory.mktemp("synthetic_case")
     volume, centres = make_volume()
@@ -79,8 +79,8 @@ def synthetic_case(tmp_path_factory) -> SyntheticCase:
 @pytest.fixture()
 def window(qapp, tmp_path):
     """A CarmReg window: scripted dialogs, autosave into tmp_path/state, no 3D (plain Qt)."""
-    from CarmRegModule.main_window import CarmRegWidget
-    from CarmRegModule.qt_common import ScriptedDialogs, process_events
+    from carmreg.main_window import CarmRegWidget
+    from carmreg.qt_common import ScriptedDialogs, process_events
 
     win = CarmRegWidget(dialogs=ScriptedDialogs(), autosave=True, state_folder=tmp_path / "state",
                         view3d_mode="message")
@@ -98,8 +98,8 @@ def xray_window(window):
     """The window with a 400 x 300 px in-memory X-ray (geometry known) on the X-ray step."""
     from gui_helpers import ready
 
-    from Logic.camera import CarmIntrinsics
-    from Logic.xray import XrayImage
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.io.xray import XrayImage
 
     rows, cols = 300, 400
     pixels = np.add.outer(np.arange(rows), np.arange(cols)).astype(np.float32)

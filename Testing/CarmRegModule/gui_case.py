@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from Logic.intensity_refine import RefineParameters
+from carmreg.logic.registration.image_refine import RefineParameters
 
 LEVELS = ("T11", "T12", "L1", "L2", "L3")
 TRUE_POSE = (20.0, 6.0, -8.0, 1.0, 0.0, 0.0)
@@ -31,7 +31,7 @@ class SyntheticCase:
 
 def make_volume():
     """A small torso: soft-tissue ellipse, five vertebral bodies 30 mm apart along z, ribs as bars (LPS)."""
-    from Logic.volume import Volume
+    from carmreg.logic.geometry.volume import Volume
 
     shape, spacing = (90, 70, 80), 2.0
     i, j, k = np.meshgrid(*[np.arange(n, dtype=np.float32) for n in shape], indexing="ij")

@@ -6,7 +6,7 @@ import numpy as np
 from qtpy import QtCore
 from qtpy.QtTest import QTest
 
-from CarmRegModule.qt_common import process_events
+from carmreg.qt_common import process_events
 
 LEFT = QtCore.Qt.MouseButton.LeftButton
 RIGHT = QtCore.Qt.MouseButton.RightButton

@@ -8,8 +8,8 @@ pytestmark = pytest.mark.gui
 
 
 def test_run_gui_loads_command_line_files_and_returns_the_exit_code(qapp, synthetic_case, tmp_path, monkeypatch):
-    from CarmRegModule import app
-    from CarmRegModule.main_window import CarmRegWidget
+    from carmreg import app
+    from carmreg.main_window import CarmRegWidget
 
     monkeypatch.setenv("CARMREG_STATE_DIR", str(tmp_path / "state"))
     monkeypatch.setenv("CARMREG_NO_VTK", "1")  # keep it fast: no 3D
@@ -40,10 +40,10 @@ def test_run_gui_loads_command_line_files_and_returns_the_exit_code(qapp, synthe
 
 
 def test_module_shape_matches_a_slicer_scripted_module(qapp):
-    from CarmRegModule import CarmReg
+    from carmreg import CarmReg
 
     assert CarmReg.CarmReg.title == "CarmReg" and "Registration" in CarmReg.CarmReg.categories
     assert CarmReg.CarmRegWidget.__name__ == "CarmRegWidget"
-    from Logic.pipeline import CarmRegLogic
+    from carmreg.logic.registration.pipeline import CarmRegLogic
     assert CarmReg.CarmRegLogic is CarmRegLogic
     assert hasattr(CarmReg.CarmRegTest, "runTest")

@@ -6,10 +6,10 @@ import nrrd
 import numpy as np
 import pytest
 
-from CarmRegModule.cli import main
-from Logic.camera import CarmGeometry, CarmIntrinsics, project
-from Logic.io_volume import load_volume
-from Logic.xray import load_xray
+from carmreg.cli import main
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
+from carmreg.logic.io.volumes import load_volume
+from carmreg.logic.io.xray import load_xray
 
 
 def test_drr_writes_png_and_nrrd_whose_geometry_matches(sample_case_dir, tmp_path, capsys):
@@ -47,7 +47,7 @@ def test_simulate_writes_an_xray_with_its_ground_truth(tmp_path, capsys):
 
 
 def test_sample_ct_round_trips_through_a_dicom_series(sample_case_dir, tmp_path):
-    from Logic.io_volume import write_dicom_series
+    from carmreg.logic.io.volumes import write_dicom_series
 
     ct = load_volume(sample_case_dir / "ct.nrrd")
     write_dicom_series(tmp_path / "dicom", ct)

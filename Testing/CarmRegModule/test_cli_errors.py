@@ -19,14 +19,14 @@ import pydicom
 import pytest
 from PIL import Image
 
-from CarmRegModule.cli import main
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
-from Logic.drr_cpu import render_line_integrals
-from Logic.io_volume import load_volume, write_dicom_series, write_volume_nrrd
-from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
-from Logic.pipeline import CarmRegLogic
-from Logic.volume import MuPyramid, Volume
-from Logic.xray import load_xray, write_png16, write_xray_dicom
+from carmreg.cli import main
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
+from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
+from carmreg.logic.io.xray import load_xray, write_png16, write_xray_dicom
+from carmreg.logic.registration.pipeline import CarmRegLogic
 
 REPO = Path(__file__).resolve().parents[2]
 LEVELS = ["T11", "T12", "L1", "L2"]
@@ -221,7 +221,7 @@ def _subprocess(argv: list[str]) -> subprocess.CompletedProcess:
 
 
 def test_real_process_python_m_missing_file(case):
-    done = _subprocess([sys.executable, "-m", "CarmRegModule.cli",
+    done = _subprocess([sys.executable, "-m", "carmreg.cli",
                         *register_args(case, xray=case["folder"] / "missing.dcm")])
     assert_one_line_error(done.returncode, done.stderr, "missing.dcm: X-ray file not found")
     assert done.stdout == ""
@@ -245,6 +245,6 @@ def test_real_process_library_warnings_stay_off_stderr(case):
     damaged = _write(case, "uid.dcm", raw[:uid_at] + b"x" + raw[uid_at + 1:])
     with pytest.warns(UserWarning, match="Invalid value for VR UI"):
         pydicom.dcmread(damaged).SOPInstanceUID  # noqa: B018 - the library does warn on this file
-    done = _subprocess([sys.executable, "-m", "CarmRegModule.cli", *register_args(case, xray=damaged)])
+    done = _subprocess([sys.executable, "-m", "carmreg.cli", *register_args(case, xray=damaged)])
     assert_one_line_error(done.returncode, done.stderr, "uid.dcm: the source-to-detector distance")
     assert load_xray(damaged, sdd_mm=1000.0).meta["library_warnings"][0].startswith("Invalid value for VR UI")

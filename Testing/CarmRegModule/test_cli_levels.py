@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from CarmRegModule.cli import main
-from Logic.landmarks import read_landmarks_2d
+from carmreg.cli import main
+from carmreg.logic.io.landmarks import read_landmarks_2d
 
 pytestmark = pytest.mark.slow
 

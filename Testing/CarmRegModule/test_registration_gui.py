@@ -104,8 +104,8 @@ def test_sample_case_registers_from_the_gui_and_names_its_levels(window):
     """The embedded sample (real CT, simulated C-arm image with distortion, K-wires and per-level motion):
     the overlay names every CT level that projects into the image, and each visible level lands within
     5 mm (detector) of its true position - also the levels that were not fitted."""
-    from Logic.errors import InputFileError
-    from Logic.resources import sample_case
+    from carmreg.logic.errors import InputFileError
+    from carmreg.logic.resources import sample_case
 
     try:
         paths = sample_case()

@@ -19,7 +19,7 @@ VIEW_SIZE = (520, 440)
 
 
 def _grab(widget) -> np.ndarray:
-    from CarmRegModule.qt_common import process_events
+    from carmreg.qt_common import process_events
 
     widget.resize(*VIEW_SIZE)
     widget.show()
@@ -54,7 +54,7 @@ def _compare(name: str, rgb: np.ndarray) -> None:
 def _store(qapp, dim):
     from qtpy import QtGui
 
-    from CarmRegModule.point_store import PointStore
+    from carmreg.point_store import PointStore
 
     return PointStore("CT" if dim == 3 else "X-ray", dim, QtGui.QUndoStack())
 
@@ -62,7 +62,7 @@ def _store(qapp, dim):
 def test_axial_slice_view_matches_its_baseline(qapp):
     from gui_case import make_volume
 
-    from CarmRegModule.views.slice_view import SliceView
+    from carmreg.views.slice_view import SliceView
 
     volume, centres = make_volume()
     store = _store(qapp, 3)
@@ -77,8 +77,8 @@ def test_axial_slice_view_matches_its_baseline(qapp):
 
 
 def test_xray_view_matches_its_baseline(qapp, synthetic_case):
-    from CarmRegModule.views.xray_view import XrayView
-    from Logic.xray import load_xray
+    from carmreg.logic.io.xray import load_xray
+    from carmreg.views.xray_view import XrayView
 
     xray = load_xray(synthetic_case.xray_path)
     store = _store(qapp, 2)
@@ -91,8 +91,8 @@ def test_xray_view_matches_its_baseline(qapp, synthetic_case):
 
 
 def test_overlay_view_matches_its_baseline(qapp, synthetic_case):
-    from CarmRegModule.views.overlay_view import OverlayView
-    from Logic.xray import load_xray
+    from carmreg.logic.io.xray import load_xray
+    from carmreg.views.overlay_view import OverlayView
 
     xray = load_xray(synthetic_case.xray_path)
     fitted = {"T12", "L1", "L2"}
@@ -113,13 +113,13 @@ def test_export_screenshots_headless_writes_window_and_views(qapp, synthetic_cas
     """``export_screenshots`` with the sample case replaced by the synthetic one (fast, always available)."""
     from gui_case import FAST_PARAMETERS
 
-    import Logic.resources
-    from CarmRegModule import app
+    import carmreg.logic.resources
+    from carmreg import app
 
     paths = {"ct": synthetic_case.ct_path, "xray": synthetic_case.xray_path,
              "ct_landmarks": synthetic_case.ct_landmarks_path, "xray_landmarks": synthetic_case.xray_landmarks_path,
              "ground_truth": tmp_path / "none.json"}
-    monkeypatch.setattr(Logic.resources, "sample_case", lambda: paths)
+    monkeypatch.setattr(carmreg.logic.resources, "sample_case", lambda: paths)
     out = app.export_screenshots(tmp_path / "shots", views=("window", "window_ct", "xray", "overlay"),
                                  size=(1400, 900), parameters=FAST_PARAMETERS)
     assert [p.name for p in out] == ["carmreg_window.png", "carmreg_window_ct.png", "carmreg_xray.png",

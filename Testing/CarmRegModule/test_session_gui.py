@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
+from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
 
 pytestmark = pytest.mark.gui
 HERE = Path(__file__).resolve().parent
@@ -25,8 +25,8 @@ def _load_case(win, case):
 
 
 def test_session_round_trip_restores_data_geometry_and_points(window, synthetic_case, tmp_path, qapp):
-    from CarmRegModule.main_window import CarmRegWidget
-    from CarmRegModule.qt_common import ScriptedDialogs
+    from carmreg.main_window import CarmRegWidget
+    from carmreg.qt_common import ScriptedDialogs
 
     _load_case(window, synthetic_case)
     window.apply_geometry({"sdd_mm": 1010.0})
@@ -59,8 +59,8 @@ def test_session_round_trip_restores_data_geometry_and_points(window, synthetic_
 CRASHING_RUN = textwrap.dedent("""
     import os, sys
     os.environ["QT_QPA_PLATFORM"] = "offscreen"
-    from CarmRegModule.qt_common import ensure_app, ScriptedDialogs, process_events
-    from CarmRegModule.main_window import CarmRegWidget
+    from carmreg.qt_common import ensure_app, ScriptedDialogs, process_events
+    from carmreg.main_window import CarmRegWidget
     app = ensure_app()
     win = CarmRegWidget(dialogs=ScriptedDialogs(), state_folder=sys.argv[1], view3d_mode="message")
     win.load_ct(sys.argv[2])
@@ -95,7 +95,7 @@ def test_autosave_survives_a_crash_and_is_offered_for_recovery(window, synthetic
 
 
 def test_discarding_a_crash_autosave_deletes_it(window, tmp_path):
-    from Logic.session import Session, write_autosave
+    from carmreg.logic.io.session import Session, write_autosave
 
     state = tmp_path / "state"
     path = write_autosave(Session(ct_points=[{"label": "T1", "position_lps_mm": [0, 0, 0]}]), pid=999_999_9,
@@ -106,9 +106,9 @@ def test_discarding_a_crash_autosave_deletes_it(window, tmp_path):
 
 
 def test_edits_are_autosaved_and_a_clean_close_removes_the_autosave(qapp, tmp_path):
-    from CarmRegModule.main_window import CarmRegWidget
-    from CarmRegModule.qt_common import ScriptedDialogs, process_events
-    from Logic.session import load_session
+    from carmreg.logic.io.session import load_session
+    from carmreg.main_window import CarmRegWidget
+    from carmreg.qt_common import ScriptedDialogs, process_events
 
     state = tmp_path / "state"
     win = CarmRegWidget(dialogs=ScriptedDialogs({"question": ["Discard"]}), state_folder=state,
@@ -170,9 +170,9 @@ def test_errors_from_the_logic_become_dialogs_not_crashes(window, tmp_path):
 
 
 def test_propose_centroids_from_a_vertebra_label_map(window, synthetic_case, tmp_path):
-    from Logic.io_volume import write_volume_nrrd
-    from Logic.vertebrae import carmreg_label_value
-    from Logic.volume import Volume
+    from carmreg.logic.geometry.vertebrae import carmreg_label_value
+    from carmreg.logic.geometry.volume import Volume
+    from carmreg.logic.io.volumes import write_volume_nrrd
 
     window.load_ct(synthetic_case.ct_path)
     hu = window.ct_volume.hu

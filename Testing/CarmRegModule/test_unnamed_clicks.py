@@ -122,7 +122,7 @@ def test_unnamed_click_undo_redo_delete_and_bulk_rename_in_one_step(xray_window)
     assert store.labels() == ["T11", "T12"] and win.undo_stack.undoText().startswith("Name them")
     store.rename_many({upper.id: "T12", lower.id: "T11"})  # a swap is allowed
     assert store.find("T12").id == upper.id
-    from Logic.errors import LandmarkError
+    from carmreg.logic.errors import LandmarkError
     with pytest.raises(LandmarkError, match="placed twice"):
         store.rename_many({upper.id: "L1", lower.id: "L1"})
     win.undo_stack.undo()
@@ -131,10 +131,10 @@ def test_unnamed_click_undo_redo_delete_and_bulk_rename_in_one_step(xray_window)
 
 
 def test_unnamed_clicks_survive_session_autosave_and_mrk_json_round_trips(xray_window, tmp_path):
-    from CarmRegModule.main_window import CarmRegWidget
-    from CarmRegModule.qt_common import ScriptedDialogs
-    from Logic import session as session_io
-    from Logic.landmarks import read_landmarks_2d
+    from carmreg.logic.io import session as session_io
+    from carmreg.logic.io.landmarks import read_landmarks_2d
+    from carmreg.main_window import CarmRegWidget
+    from carmreg.qt_common import ScriptedDialogs
 
     win = xray_window
     store = win.xray_store
@@ -218,8 +218,8 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
 def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=None, visible=None,
                  click_indices=None):
     """A RegistrationResult stand-in with a level_check, for the display without running the pipeline."""
-    from Logic.camera import CarmGeometry, CarmPose
-    from Logic.landmarks import level_index
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmPose
+    from carmreg.logic.io.landmarks import level_index
 
     geometry = CarmGeometry(win.xray.intrinsics, (0.0, 0.0, 0.0), 600.0)
     pose = CarmPose(0, 0, 0, 0, 0, 0)
@@ -306,7 +306,7 @@ def test_status_colours_and_image_only_mode_in_the_result_panel(xray_window):
     assert win.accept_assigned_names(ask=False) and store.labels() == ["T10", "T11", "T12"]
     store.move(store.find("T10").id, [141.0, 61.0])
     assert win.result_stale and win.xray_view.assigned == {}
-    from Logic.errors import RegistrationError
+    from carmreg.logic.errors import RegistrationError
     with pytest.raises(RegistrationError, match="register again"):
         win.accept_assigned_names(ask=False)
 
@@ -330,8 +330,8 @@ def test_a_named_click_without_ct_centroid_is_skipped_when_mapping_the_assigned_
 def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window):
     """The embedded sample (real CT, simulated C-arm X-ray): its three X-ray clicks, names removed, are
     identified by the registration; the X-ray view and the result panel show it."""
-    from Logic.errors import InputFileError
-    from Logic.resources import sample_case
+    from carmreg.logic.errors import InputFileError
+    from carmreg.logic.resources import sample_case
 
     try:
         sample_case()

@@ -8,7 +8,7 @@ pytestmark = [pytest.mark.gui, pytest.mark.vtk_render]
 
 
 def _carm(volume):
-    from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
 
     geometry = CarmGeometry(CarmIntrinsics(1000.0, (0.9, 0.9), (256, 256)), tuple(volume.center_lps_mm()), 600.0)
     pose = CarmPose(20.0, 6.0, -8.0, 1.0, 0.0, 0.0)
@@ -40,7 +40,7 @@ def _check_scene(view, volume, centres):
 def test_offscreen_rendering_without_a_display(qapp):
     from gui_case import make_volume
 
-    from CarmRegModule.views.view3d import View3D, offscreen_vtk_available
+    from carmreg.views.view3d import View3D, offscreen_vtk_available
 
     if not offscreen_vtk_available():
         pytest.skip("VTK cannot render offscreen here (no EGL/OSMesa)")
@@ -62,8 +62,8 @@ def test_offscreen_rendering_without_a_display(qapp):
 def test_interactive_view_under_a_display(qapp):
     from gui_case import make_volume
 
-    from CarmRegModule.qt_common import is_offscreen, process_events
-    from CarmRegModule.views.view3d import View3D
+    from carmreg.qt_common import is_offscreen, process_events
+    from carmreg.views.view3d import View3D
 
     if is_offscreen():
         pytest.skip("needs a display (run under xvfb-run)")
@@ -86,7 +86,7 @@ def test_interactive_view_under_a_display(qapp):
 def test_without_opengl_the_view_says_so_and_the_window_still_works(window, monkeypatch):
     from gui_case import make_volume
 
-    from CarmRegModule.views.view3d import View3D
+    from carmreg.views.view3d import View3D
 
     monkeypatch.setenv("CARMREG_NO_VTK", "1")
     view = View3D()

@@ -5,7 +5,7 @@ import stat
 
 import numpy as np
 
-from Logic.atomic import atomic_write_json, to_jsonable
+from carmreg.logic.io.atomic import atomic_write_json, to_jsonable
 
 
 def test_to_jsonable_turns_numpy_tuples_and_non_finite_values_into_valid_json(tmp_path):

@@ -27,22 +27,22 @@ import pydicom
 import pytest
 from PIL import Image
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
-from Logic.database import build_database, grid
-from Logic.drr_cpu import render_line_integrals
-from Logic.errors import CarmRegError, GeometryError, InputFileError, LandmarkError
-from Logic.io_volume import load_volume, write_dicom_series, write_volume_nrrd
-from Logic.landmarks import (
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.errors import CarmRegError, GeometryError, InputFileError, LandmarkError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.io.landmarks import (
     Landmarks2D,
     Landmarks3D,
     read_landmarks_2d,
     read_landmarks_3d,
     spine_order_warnings,
 )
-from Logic.pipeline import CarmRegLogic, RegistrationParameters
-from Logic.transform_io import read_tfm
-from Logic.volume import MuPyramid, Volume
-from Logic.xray import load_xray, write_png16, write_xray_dicom
+from carmreg.logic.io.transforms import read_tfm
+from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
+from carmreg.logic.io.xray import load_xray, write_png16, write_xray_dicom
+from carmreg.logic.registration.database import build_database, grid
+from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 
 LEVELS = ["T11", "T12", "L1", "L2"]
 CENTROIDS_LPS_MM = np.array([[0.0, 15.0, z] for z in (42.0, 14.0, -14.0, -42.0)])

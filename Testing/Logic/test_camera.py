@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from Logic.camera import (
+from carmreg.logic.errors import GeometryError
+from carmreg.logic.geometry.camera import (
     CarmGeometry,
     CarmIntrinsics,
     CarmPose,
@@ -12,7 +13,6 @@ from Logic.camera import (
     pixel_to_detector_lps,
     project,
 )
-from Logic.errors import GeometryError
 
 ISO_LPS_MM = (12.0, -30.0, 250.0)
 

@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from Logic import drr_cpu
-from Logic.camera import (
+from carmreg.logic.drr import cpu as drr_cpu
+from carmreg.logic.drr.cpu import intensity_from_line_integral, render_line_integrals, transposed_mu
+from carmreg.logic.geometry.camera import (
     CarmGeometry,
     CarmIntrinsics,
     CarmPose,
@@ -25,8 +26,7 @@ from Logic.camera import (
     project,
     rotation_matrix,
 )
-from Logic.drr_cpu import intensity_from_line_integral, render_line_integrals, transposed_mu
-from Logic.volume import MuLevel, hu_to_mu, ijk_to_points
+from carmreg.logic.geometry.volume import MuLevel, hu_to_mu, ijk_to_points
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 REAL_CT = SHARED / "data" / "totalsegmentator-tests" / "example_ct_sm.nii.gz"
@@ -37,7 +37,7 @@ REAL_CT = SHARED / "data" / "totalsegmentator-tests" / "example_ct_sm.nii.gz"
 
 
 def _vtk_renderer(sample_distance_mm=None):
-    from Logic.drr_vtk import render_line_integrals_vtk, vtk_rendering_status
+    from carmreg.logic.drr.vtk_raycast import render_line_integrals_vtk, vtk_rendering_status
 
     ok, message = vtk_rendering_status()
     if not ok:
@@ -452,7 +452,7 @@ def test_vtk_without_opengl_gives_an_actionable_error():
         pytest.skip("the glvnd override used to hide EGL is Linux-only")
     env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
     env["__EGL_VENDOR_LIBRARY_FILENAMES"] = "/nonexistent/egl_vendor.json"
-    code = ("from Logic.drr_vtk import _new_render_window\n"
+    code = ("from carmreg.logic.drr.vtk_raycast import _new_render_window\n"
             "try:\n    _new_render_window()\n"
             "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
             "else:\n    print('RENDERED')\n")

@@ -31,10 +31,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from Logic.camera import CarmIntrinsics
-from Logic.errors import CarmRegError
-from Logic.io_volume import load_volume, write_dicom_series, write_volume_nrrd
-from Logic.landmarks import (
+from carmreg.logic.errors import CarmRegError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.geometry.volume import Volume
+from carmreg.logic.io.landmarks import (
     LEVEL_NAMES,
     Landmarks2D,
     Landmarks3D,
@@ -43,9 +43,9 @@ from Logic.landmarks import (
     write_landmarks_2d,
     write_landmarks_3d,
 )
-from Logic.transform_io import read_tfm, write_tfm
-from Logic.volume import Volume
-from Logic.xray import XrayImage, load_xray, write_png16, write_xray_dicom
+from carmreg.logic.io.transforms import read_tfm, write_tfm
+from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
+from carmreg.logic.io.xray import XrayImage, load_xray, write_png16, write_xray_dicom
 
 EXAMPLES = int(os.environ.get("CARMREG_FUZZ_EXAMPLES", "30"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=5000, derandomize=True, database=None,

@@ -12,10 +12,10 @@ import numpy as np
 import pydicom
 import pytest
 
-from Logic import io_volume
-from Logic.errors import InputFileError
-from Logic.io_volume import load_volume, write_dicom_series, write_volume_nrrd
-from Logic.volume import Volume, ijk_to_points
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.geometry.volume import Volume, ijk_to_points
+from carmreg.logic.io import volumes as io_volume
+from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
 
 F = np.diag([-1.0, -1.0, 1.0, 1.0])
 

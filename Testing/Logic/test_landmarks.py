@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
-from Logic.errors import InputFileError, LandmarkError
-from Logic.landmarks import (
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io.landmarks import (
     LEVEL_NAMES,
     Landmarks2D,
     Landmarks3D,

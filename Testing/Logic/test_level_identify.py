@@ -4,11 +4,11 @@ levels stage on simulated cases whose true levels are known (unnamed clicks, wro
 import numpy as np
 import pytest
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, project
-from Logic.errors import LandmarkError
-from Logic.evaluation import evaluate
-from Logic.landmarks import Landmarks2D, Landmarks3D
-from Logic.level_identify import (
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D
+from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.levels import (
     Hypothesis,
     _decide,
     candidate_labellings,
@@ -19,9 +19,15 @@ from Logic.level_identify import (
     spatial_peaks,
     visible_levels,
 )
-from Logic.pipeline import CarmRegLogic, RegistrationParameters
-from Logic.simulate import SimulationOptions, default_geometry, random_pose, sample_options, simulate_case
-from Logic.xray import XrayImage
+from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
+from carmreg.logic.simulation.evaluation import evaluate
+from carmreg.logic.simulation.simulator import (
+    SimulationOptions,
+    default_geometry,
+    random_pose,
+    sample_options,
+    simulate_case,
+)
 
 CT_NAMES = ["T9", "T10", "T11", "T12", "L1"]
 
@@ -172,8 +178,8 @@ def test_without_clicks_the_image_alone_names_the_levels_in_view(sample, simulat
 
 
 def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_work(sample):
-    from Logic.camera import CarmIntrinsics
-    from Logic.pipeline import CarmRegLogic
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.registration.pipeline import CarmRegLogic
 
     ct, _, centroids = sample
     xray = XrayImage(np.ones((200, 200), np.float32), CarmIntrinsics(1000.0, (1.0, 1.0), (200, 200)), 600.0, True,
@@ -186,7 +192,7 @@ def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_w
 
 
 def test_overlay_banner_states_mode_status_margin_and_runner_up():
-    from Logic.report import STATUS_RGB, level_banner
+    from carmreg.logic.report.result_files import STATUS_RGB, level_banner
 
     text, rgb = level_banner({"mode": "unnamed", "status": "confident", "margin": 0.121,
                               "runner_up_labels": ["T11", "T12", "L1"]})

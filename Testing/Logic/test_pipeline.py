@@ -10,12 +10,18 @@ import json
 import numpy as np
 import pytest
 
-from Logic.errors import CancelledError
-from Logic.evaluation import evaluate
-from Logic.pipeline import STAGES, CarmRegLogic, RegistrationParameters
-from Logic.report import save_result
-from Logic.simulate import SimulationOptions, default_geometry, random_pose, sample_options, simulate_case
-from Logic.xray import XrayImage, load_xray
+from carmreg.logic.errors import CancelledError
+from carmreg.logic.io.xray import XrayImage, load_xray
+from carmreg.logic.registration.pipeline import STAGES, CarmRegLogic, RegistrationParameters
+from carmreg.logic.report.result_files import save_result
+from carmreg.logic.simulation.evaluation import evaluate
+from carmreg.logic.simulation.simulator import (
+    SimulationOptions,
+    default_geometry,
+    random_pose,
+    sample_options,
+    simulate_case,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -92,7 +98,7 @@ def test_cancel_stops_the_pipeline(sample, cache):
 
 def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path):
     ct, _, centroids = sample
-    from Logic.landmarks import read_landmarks_2d
+    from carmreg.logic.io.landmarks import read_landmarks_2d
 
     xray = load_xray(sample_case_dir / "xray.dcm")
     clicks = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")

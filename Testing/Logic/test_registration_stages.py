@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, project
-from Logic.depth_search import depth_search
-from Logic.fine_search import FineParameters, fine_search
-from Logic.pde import mpde_mm
-from Logic.similarity import METRICS, similarity
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
+from carmreg.logic.geometry.projection_distance import mpde_mm
+from carmreg.logic.registration.depth import depth_search
+from carmreg.logic.registration.fine import FineParameters, fine_search
+from carmreg.logic.similarity.metrics import METRICS, similarity
 
 # A thoracolumbar spine: 7 centroids along z, slightly kyphotic, about 28 mm apart (LPS mm).
 SPINE_LPS_MM = np.array([[2.0 * np.sin(k / 3), 40 + 0.3 * (k - 3) ** 2, 85 - 28.0 * k] for k in range(7)])

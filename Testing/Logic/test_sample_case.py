@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
-from Logic.io_volume import load_volume
-from Logic.landmarks import read_landmarks_2d, read_landmarks_3d
-from Logic.simulate import IntensifierDistortion
-from Logic.vertebrae import CARMREG_VERTEBRAE, centroids_from_labels, level_ordinals
-from Logic.xray import load_xray
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.geometry.vertebrae import CARMREG_VERTEBRAE, centroids_from_labels, level_ordinals
+from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
+from carmreg.logic.io.volumes import load_volume
+from carmreg.logic.io.xray import load_xray
+from carmreg.logic.simulation.simulator import IntensifierDistortion
 
 LEVELS = [f"T{i}" for i in range(1, 13)] + ["L1"]
 

@@ -13,16 +13,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from Logic.errors import LandmarkError
-from Logic.landmarks import Landmarks3D, level_index
-from Logic.vertebrae import (
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.geometry.vertebrae import (
     TOTALSEGMENTATOR_V2_VERTEBRAE,
     carmreg_label_value,
     label_map_from_centroids,
     spine_slab_planes,
     summarize_labels,
 )
-from Logic.volume import Volume, ijk_to_points
+from carmreg.logic.geometry.volume import Volume, ijk_to_points
+from carmreg.logic.io.landmarks import Landmarks3D, level_index
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared"
@@ -158,7 +158,7 @@ def test_committed_centroids_in_bone_and_evenly_spaced(second_ct):
 
 
 def _seg_summaries(ct: Volume):
-    from Logic.io_volume import load_volume
+    from carmreg.logic.io.volumes import load_volume
 
     crop = np.asarray(load_volume(TOTALSEG / "example_ct_sm.nii.gz").hu)
     full = np.asarray(ct.hu)
@@ -188,7 +188,13 @@ def test_names_agree_with_example_seg(second_ct):
 
 
 def test_simulated_image_of_second_ct_shows_several_levels(second_ct):
-    from Logic.simulate import SimulationOptions, default_geometry, random_pose, sample_options, simulate_case
+    from carmreg.logic.simulation.simulator import (
+        SimulationOptions,
+        default_geometry,
+        random_pose,
+        sample_options,
+        simulate_case,
+    )
 
     ct, labels, centroids = second_ct
     rng = np.random.default_rng(1000)

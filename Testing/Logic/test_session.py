@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from Logic import session as s
-from Logic.errors import InputFileError, LandmarkError
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io import session as s
 
 
 def _session(tmp_path):

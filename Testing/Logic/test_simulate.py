@@ -9,11 +9,18 @@ import json
 import numpy as np
 import pytest
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
-from Logic.drr_cpu import render_line_integrals
-from Logic.errors import GeometryError, LandmarkError
-from Logic.landmarks import Landmarks3D, read_landmarks_2d, read_landmarks_3d
-from Logic.simulate import (
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.errors import GeometryError, LandmarkError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.geometry.vertebrae import (
+    CARMREG_VERTEBRAE,
+    carmreg_label_value,
+    centroids_from_labels,
+    level_ordinals,
+)
+from carmreg.logic.geometry.volume import MuLevel, Volume, hu_to_mu
+from carmreg.logic.io.landmarks import Landmarks3D, read_landmarks_2d, read_landmarks_3d
+from carmreg.logic.simulation.simulator import (
     IntensifierDistortion,
     Kwire,
     LevelMotion,
@@ -27,8 +34,6 @@ from Logic.simulate import (
     simulate_case,
     write_simulated_case,
 )
-from Logic.vertebrae import CARMREG_VERTEBRAE, carmreg_label_value, centroids_from_labels, level_ordinals
-from Logic.volume import MuLevel, Volume, hu_to_mu
 
 SMALL = dict(size_px=(256, 256), pixel_spacing_mm=1.0)
 """A 256 mm detector at 1 mm pixels: the 230 mm field fits, renders in a fraction of a second."""
@@ -258,7 +263,7 @@ def test_ground_truth_is_self_consistent_and_json(beads, tmp_path):
         assert truth["levels"][name]["visible"]
         assert np.linalg.norm(np.subtract(uv, truth["levels"][name]["uv_true_px"])) < 5 * sd_px
 
-    from Logic.xray import load_xray
+    from carmreg.logic.io.xray import load_xray
 
     paths = write_simulated_case(tmp_path, sim)
     xray = load_xray(paths["xray"])
@@ -316,9 +321,9 @@ def test_bad_inputs_raise_actionable_errors(beads):
 def test_run_cli_on_user_files_with_totalsegmentator_labels(beads, tmp_path, capsys):
     import argparse
 
-    from Logic.io_volume import write_volume_nrrd
-    from Logic.simulate import run_cli
-    from Logic.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE
+    from carmreg.logic.geometry.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE
+    from carmreg.logic.io.volumes import write_volume_nrrd
+    from carmreg.logic.simulation.simulator import run_cli
 
     volume, labels, centroids = beads
     to_ts = {carmreg_label_value(n): v for v, n in TOTALSEGMENTATOR_V2_VERTEBRAE.items()}

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
-from Logic.errors import InputFileError
-from Logic.transform_io import lps_to_ras_matrix, ras_to_lps_matrix, read_tfm, write_tfm
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+from carmreg.logic.io.transforms import lps_to_ras_matrix, ras_to_lps_matrix, read_tfm, write_tfm
 
 
 def rigid(angles_deg=(10.0, -25.0, 40.0), translation=(12.5, -7.0, 300.0)) -> np.ndarray:

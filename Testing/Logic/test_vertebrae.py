@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from Logic.errors import LandmarkError
-from Logic.landmarks import LEVEL_NAMES
-from Logic.vertebrae import (
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.geometry.vertebrae import (
     CARMREG_VERTEBRAE,
     TOTALSEGMENTATOR_V2_VERTEBRAE,
     carmreg_label_value,
@@ -17,7 +16,8 @@ from Logic.vertebrae import (
     superior_axis,
     to_carmreg_labels,
 )
-from Logic.volume import ijk_to_points
+from carmreg.logic.geometry.volume import ijk_to_points
+from carmreg.logic.io.landmarks import LEVEL_NAMES
 
 
 def oblique_affine(spacing_mm, angles_deg) -> np.ndarray:

@@ -3,9 +3,16 @@
 import numpy as np
 import pytest
 
-from Logic.camera import rotation_matrix
-from Logic.errors import InputFileError
-from Logic.volume import MU_WATER_PER_MM, MuPyramid, Volume, hu_to_mu, ijk_to_points, resample_isotropic
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.geometry.camera import rotation_matrix
+from carmreg.logic.geometry.volume import (
+    MU_WATER_PER_MM,
+    MuPyramid,
+    Volume,
+    hu_to_mu,
+    ijk_to_points,
+    resample_isotropic,
+)
 
 
 def oblique_affine(spacing=(0.8, 0.9, 2.5), origin=(-40.0, 25.0, 100.0)):

@@ -7,9 +7,9 @@ import pydicom
 import pytest
 from PIL import Image
 
-from Logic.camera import CarmIntrinsics
-from Logic.errors import GeometryError, InputFileError
-from Logic.xray import load_xray, write_png16, write_xray_dicom
+from carmreg.logic.errors import GeometryError, InputFileError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.io.xray import load_xray, write_png16, write_xray_dicom
 
 ROWS, COLS = 30, 40
 

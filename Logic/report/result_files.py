@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from . import __version__
-from .atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
-from .camera import pixel_to_detector_lps
+from carmreg.logic import __version__
+from carmreg.logic.geometry.camera import pixel_to_detector_lps
+from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 
 FITTED_RGB = (40, 220, 90)
 CLICK_RGB = (255, 60, 60)
@@ -225,8 +225,8 @@ def similarity_figure(result) -> bytes:
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 bone_dark: bool = True) -> dict:
     """Write every output file; returns {name: path}."""
-    from .transform_io import write_tfm
-    from .xray_prep import field_mask
+    from carmreg.logic.image.prepare import field_mask
+    from carmreg.logic.io.transforms import write_tfm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

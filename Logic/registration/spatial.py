@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .database import DrrDatabase
-from .similarity import METRICS, similarity
+from carmreg.logic.registration.database import DrrDatabase
+from carmreg.logic.similarity.metrics import METRICS, similarity
 
 
 @dataclass

@@ -46,11 +46,13 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from .atomic import atomic_write_json
-from .camera import CarmGeometry, CarmIntrinsics, CarmPose, project, rotation_matrix
-from .drr_cpu import render_line_integrals
-from .errors import GeometryError, LandmarkError
-from .landmarks import (
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.errors import GeometryError, LandmarkError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project, rotation_matrix
+from carmreg.logic.geometry.vertebrae import CARMREG_VERTEBRAE, level_ordinals
+from carmreg.logic.geometry.volume import MuLevel, Volume, hu_to_mu
+from carmreg.logic.io.atomic import atomic_write_json
+from carmreg.logic.io.landmarks import (
     Landmarks2D,
     Landmarks3D,
     level_index,
@@ -58,8 +60,6 @@ from .landmarks import (
     write_landmarks_2d,
     write_landmarks_3d,
 )
-from .vertebrae import CARMREG_VERTEBRAE, level_ordinals
-from .volume import MuLevel, Volume, hu_to_mu
 
 GROUND_TRUTH_SCHEMA = "carmreg-ground-truth/1"
 
@@ -366,7 +366,7 @@ def kwire_path_lengths(wire: Kwire, source_lps_mm: np.ndarray, pixels_lps_mm: np
 
 def add_kwire(line: np.ndarray, wire: Kwire, geometry: CarmGeometry, pose: CarmPose, mu_per_mm: float) -> None:
     """line += mu * (path length of every pixel ray inside the wire), only over the window the wire covers."""
-    from .camera import pixel_to_detector_lps
+    from carmreg.logic.geometry.camera import pixel_to_detector_lps
 
     rows, cols = line.shape
     uv = project(geometry.projection_matrix(pose), np.array([wire.tip_lps_mm, wire.end_lps_mm]))
@@ -749,7 +749,7 @@ def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids:
     """Simulate one intraoperative AP C-arm image of ``volume`` under ``pose`` (module docstring).
 
     vertebra_labels: label map on the CT grid with CarmReg values (1 + LEVEL_NAMES.index; see
-        ``Logic.vertebrae.to_carmreg_labels``), or None for no per-level motion.
+        ``carmreg.logic.geometry.vertebrae.to_carmreg_labels``), or None for no per-level motion.
     centroids: true CT centroids (LPS mm) of the levels to report (e.g. ``centroids_from_labels``).
     Deterministic for a given seed (random draws in order: motions, K-wires, noise, clicks, 3D noise).
     """
@@ -797,7 +797,7 @@ def simulate_case(volume: Volume, vertebra_labels: np.ndarray | None, centroids:
 def write_simulated_case(out_dir: str | Path, sim: SimulatedXray) -> dict[str, Path]:
     """Write xray.dcm (XA with geometry), xray.png (16-bit), xray_centroids.mrk.json, ct_centroids.mrk.json
     and ground_truth.json into ``out_dir`` (atomic writes). Returns the paths by key."""
-    from .xray import write_png16, write_xray_dicom
+    from carmreg.logic.io.xray import write_png16, write_xray_dicom
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -818,8 +818,8 @@ def write_simulated_case(out_dir: str | Path, sim: SimulatedXray) -> dict[str, P
 def load_vertebra_labels(path, ct: Volume) -> np.ndarray:
     """A vertebra label map on the CT grid, as CarmReg values. TotalSegmentator v2 maps (values above 27)
     are relabelled; anything else is taken as CarmReg values (1 + LEVEL_NAMES.index)."""
-    from .io_volume import load_volume
-    from .vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, to_carmreg_labels
+    from carmreg.logic.geometry.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, to_carmreg_labels
+    from carmreg.logic.io.volumes import load_volume
 
     labels = load_volume(path)
     if labels.shape != ct.shape or not np.allclose(labels.ijk_to_lps, ct.ijk_to_lps, atol=1e-3):
@@ -833,10 +833,10 @@ def load_vertebra_labels(path, ct: Volume) -> np.ndarray:
 
 def _cli_inputs(args):
     """(CT, labels or None, centroids) from the CLI arguments; the embedded sample case by default."""
-    from .io_volume import load_volume
-    from .landmarks import read_landmarks_3d
-    from .resources import sample_case
-    from .vertebrae import centroids_from_labels
+    from carmreg.logic.geometry.vertebrae import centroids_from_labels
+    from carmreg.logic.io.landmarks import read_landmarks_3d
+    from carmreg.logic.io.volumes import load_volume
+    from carmreg.logic.resources import sample_case
 
     sample = sample_case() if not args.ct else None
     ct = load_volume(args.ct or sample["ct"])

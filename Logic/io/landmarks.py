@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_json
-from .errors import InputFileError, LandmarkError
-from .xray import describe
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io.atomic import atomic_write_json
+from carmreg.logic.io.xray import describe
 
 LEVEL_NAMES = ([f"C{i}" for i in range(1, 8)] + [f"T{i}" for i in range(1, 14)]
                + [f"L{i}" for i in range(1, 7)] + ["S1"])

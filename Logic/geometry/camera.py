@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import GeometryError
+from carmreg.logic.errors import GeometryError
 
 # Rotation of the nominal AP camera: rows are camera x, y, z axes expressed in LPS.
 NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patient Left

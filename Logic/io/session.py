@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_json, to_jsonable
-from .errors import InputFileError, LandmarkError
-from .landmarks import Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io.atomic import atomic_write_json, to_jsonable
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
 
 FORMAT_NAME = "carmreg-session"
 FORMAT_VERSION = 1

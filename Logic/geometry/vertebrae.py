@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .errors import LandmarkError
-from .landmarks import LEVEL_NAMES, Landmarks3D, level_index, normalize_level_name
-from .volume import Volume
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.geometry.volume import Volume
+from carmreg.logic.io.landmarks import LEVEL_NAMES, Landmarks3D, level_index, normalize_level_name
 
 TOTALSEGMENTATOR_V2_VERTEBRAE: dict[int, str] = {
     26: "S1",

@@ -50,13 +50,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .camera import CarmGeometry, project
-from .depth_search import depth_search
-from .errors import LandmarkError
-from .fine_search import FineParameters, fine_search
-from .intensity_refine import RefineParameters, intensity_refine
-from .landmarks import LEVEL_NAMES, Landmarks2D, Landmarks3D, level_index
-from .volume import MuLevel
+from carmreg.logic.errors import LandmarkError
+from carmreg.logic.geometry.camera import CarmGeometry, project
+from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.io.landmarks import LEVEL_NAMES, Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.registration.depth import depth_search
+from carmreg.logic.registration.fine import FineParameters, fine_search
+from carmreg.logic.registration.image_refine import RefineParameters, intensity_refine
 
 
 def coarse_refine_parameters() -> RefineParameters:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import project
+from carmreg.logic.geometry.camera import project
 
 
 def evaluate(projection_matrix: np.ndarray, centroids: dict, truth: dict, fitted: set[str]) -> dict:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import CarmGeometry, project
+from carmreg.logic.geometry.camera import CarmGeometry, project
 
 
 def pde_mm(P: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,

@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 import cma
 import numpy as np
 
-from .camera import CarmGeometry
-from .drr_cpu import render_line_integrals, row_spans
-from .pde import pde_mm
-from .similarity import similarity
-from .volume import MuLevel
-from .xray_prep import bin_image, bin_mask
+from carmreg.logic.drr.cpu import render_line_integrals, row_spans
+from carmreg.logic.geometry.camera import CarmGeometry
+from carmreg.logic.geometry.projection_distance import pde_mm
+from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.image.prepare import bin_image, bin_mask
+from carmreg.logic.similarity.metrics import similarity
 
 
 @dataclass

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 import cma
 import numpy as np
 
-from .camera import CarmGeometry
-from .pde import mpde_mm
+from carmreg.logic.geometry.camera import CarmGeometry
+from carmreg.logic.geometry.projection_distance import mpde_mm
 
 
 @dataclass

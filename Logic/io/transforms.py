@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_text
-from .errors import InputFileError
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.io.atomic import atomic_write_text
 
 HEADER = "#Insight Transform File V1.0"
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .camera import CarmGeometry, project
+from carmreg.logic.geometry.camera import CarmGeometry, project
 
 
 @dataclass

@@ -35,10 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write
-from .errors import InputFileError
-from .volume import Volume
-from .xray import (
+from carmreg.logic.errors import InputFileError
+from carmreg.logic.geometry.volume import Volume
+from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.io.xray import (
     DICOM_PARSE_ERRORS,
     describe,
     dicom_int,
@@ -842,7 +842,7 @@ def _ct_template(volume: Volume, patient_name: str, series_description: str):
     from pydicom.dataset import Dataset
     from pydicom.uid import generate_uid
 
-    from .xray import ds_decimal
+    from carmreg.logic.io.xray import ds_decimal
 
     affine = volume.ijk_to_lps
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
@@ -875,7 +875,7 @@ def _write_ct_slice(path: Path, template, pixels_rc: np.ndarray, k: int, positio
     from pydicom.dataset import FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
-    from .xray import ds_decimal
+    from carmreg.logic.io.xray import ds_decimal
 
     ds = copy.deepcopy(template)
     ds.SOPInstanceUID = generate_uid()

@@ -34,15 +34,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import CarmGeometry, CarmPose, project
-from .database import DrrDatabase, build_database, grid, source_digest
-from .depth_search import DepthResult, depth_search, tx_limits
-from .drr_cpu import render_line_integrals
-from .errors import CancelledError, LandmarkError, RegistrationError
-from .fine_search import FineParameters, FineResult, fine_search
-from .intensity_refine import RefineParameters, RefineResult, intensity_refine
-from .landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label, spine_order_warnings
-from .level_identify import (
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.errors import CancelledError, LandmarkError, RegistrationError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, project
+from carmreg.logic.geometry.projection_distance import mpde_mm, pde_mm
+from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor, field_mask
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label, spine_order_warnings
+from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.database import DrrDatabase, build_database, grid, source_digest
+from carmreg.logic.registration.depth import DepthResult, depth_search, tx_limits
+from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
+from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
+from carmreg.logic.registration.levels import (
     IdentifyContext,
     IdentifyParameters,
     LevelIdentification,
@@ -53,12 +57,8 @@ from .level_identify import (
     identify_from_image,
     identify_levels,
 )
-from .pde import mpde_mm, pde_mm
-from .similarity import METRICS
-from .spatial_search import SpatialResult, spatial_search
-from .volume import MuPyramid, Volume
-from .xray import XrayImage
-from .xray_prep import attenuation, bin_image, bin_mask, coarse_factor, field_mask
+from carmreg.logic.registration.spatial import SpatialResult, spatial_search
+from carmreg.logic.similarity.metrics import METRICS
 
 STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
 MIN_CLICKS = 3  # X-ray clicks needed (named or not); zero clicks = levels from the image alone
@@ -378,7 +378,7 @@ class CarmRegLogic:
     def save_result(self, result: RegistrationResult, out_dir, xray_pixels: np.ndarray | None = None,
                     clicked: dict | None = None, bone_dark: bool = True) -> dict:
         """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``)."""
-        from .report import save_result
+        from carmreg.logic.report.result_files import save_result
 
         pixels = xray_pixels if xray_pixels is not None else result.xray_line_integral
         return save_result(result, out_dir, pixels, clicked, bone_dark if xray_pixels is not None else False)

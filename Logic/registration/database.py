@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write, atomic_write_json
-from .camera import CarmGeometry, CarmIntrinsics
-from .drr_cpu import render_line_integrals
-from .volume import MuLevel
+from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
+from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.io.atomic import atomic_write, atomic_write_json
 
 FORMAT_VERSION = 2
 

@@ -44,9 +44,9 @@ import weakref
 
 import numpy as np
 
-from .camera import CarmGeometry, CarmIntrinsics, CarmPose
-from .errors import RegistrationError
-from .volume import MuLevel
+from carmreg.logic.errors import RegistrationError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+from carmreg.logic.geometry.volume import MuLevel
 
 _OPACITY = 0.5
 _EXIT_SHADER = """
@@ -315,9 +315,9 @@ def release_vtk_renderer() -> None:
 
 _PROBE = """
 import numpy as np
-from Logic.camera import CarmGeometry, CarmIntrinsics, CarmPose
-from Logic.volume import MuLevel
-from Logic.drr_vtk import render_line_integrals_vtk
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.drr.vtk_raycast import render_line_integrals_vtk
 mu = np.zeros((8, 8, 8), np.float32); mu[2:6, 2:6, 2:6] = 0.02
 level = MuLevel(mu, np.diag([4.0, 4.0, 4.0, 1.0]), None)
 g = CarmGeometry(CarmIntrinsics(1000.0, (2.0, 2.0), (16, 16)), (14.0, 14.0, 14.0), 500.0)

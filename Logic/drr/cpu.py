@@ -35,8 +35,8 @@ import weakref
 import numba
 import numpy as np
 
-from .camera import CarmGeometry, CarmIntrinsics, CarmPose
-from .volume import MuLevel
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+from carmreg.logic.geometry.volume import MuLevel
 
 _BIG = 1e30
 SERIAL_WORK_LIMIT = 2_000_000

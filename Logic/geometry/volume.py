@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputFileError
+from carmreg.logic.errors import InputFileError
 
 MU_WATER_PER_MM = 0.02
 """Linear attenuation of water near 60-70 keV, 1/mm (method paper Eq. 3)."""

@@ -53,9 +53,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write
-from .camera import CarmIntrinsics
-from .errors import GeometryError, InputFileError
+from carmreg.logic.errors import GeometryError, InputFileError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.io.atomic import atomic_write
 
 DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
