@@ -63,6 +63,7 @@ def result_dict(result) -> dict:
                     "pose": s.pose.as_dict(), **to_jsonable(s.extra)} for s in result.stages],
         "levels": result.levels,
         "level_check": to_jsonable(result.level_check),
+        "appearance": to_jsonable(result.appearance.as_dict()) if result.appearance is not None else None,
         "parameters": to_jsonable(result.parameters.as_dict()),
         "inputs": result.inputs,
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
@@ -222,10 +223,15 @@ def similarity_figure(result) -> bytes:
     return data
 
 
-def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
-                bone_dark: bool = True) -> dict:
-    """Write every output file; returns {name: path}."""
-    from carmreg.logic.image.prepare import field_mask
+def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
+    """The registration's exposed field when it was of these pixels, else found again."""
+    mask = getattr(result, "field_mask", None)
+    return mask if mask is not None and mask.shape == np.shape(xray_pixels) else field_mask(xray_pixels)
+
+
+def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None) -> dict:
+    """Write every output file; returns {name: path}. ``xray_pixels``: the X-ray as stored (shown as stored)."""
+    from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
     out = Path(out_dir)
@@ -233,7 +239,7 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
                                                                     result.levels, clicked,
-                                                                    mask=field_mask(xray_pixels, bone_dark),
+                                                                    mask=_field(result, xray_pixels, field_mask),
                                                                     level_check=result.level_check))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
