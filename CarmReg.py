@@ -420,7 +420,7 @@ class CarmReg(ScriptedLoadableModule):
         self.parent.categories = list(about.CATEGORIES)
         self.parent.dependencies = []
         self.parent.contributors = list(about.CONTRIBUTORS)
-        self.parent.helpText = about.HELP_TEXT + self.getDefaultModuleDocumentationLink()
+        self.parent.helpText = about.HELP_TEXT
         self.parent.acknowledgementText = about.ACKNOWLEDGEMENT_TEXT
 
 
@@ -516,7 +516,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         self.layout.addStretch(1)
         ui.loadSample.connect("clicked(bool)", self.onLoadSample)
         ui.apply.connect("clicked(bool)", self.onApplyButton)
-        ui.cancel.connect("clicked(bool)", lambda: self.logic.cancel())
+        ui.cancel.connect("clicked(bool)", lambda checked=False: self.logic.cancel())
         ui.export.connect("clicked(bool)", self.onExport)
         return ui
 
@@ -548,7 +548,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.sdd.value = float(node.GetParameter("SddMm") or 0)
             self.ui.spacing.value = float(node.GetParameter("PixelSpacingMm") or 0)
             self.ui.sod.value = float(node.GetParameter("SodMm") or 0)
-            self.ui.metric.currentText = node.GetParameter("Metric") or "gc"
+            self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
             ready = all(node.GetNodeReference(r) for r in ("CT", "CTPoints", "Xray"))
             self.ui.apply.enabled = ready
