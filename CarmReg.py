@@ -50,6 +50,7 @@ OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "P
 DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "Metric": "gc", "CheckLevels": "true"}
 """0 = take the value from the X-ray file (DICOM tags) or CarmReg's default."""
 METRICS = ("gc", "go", "ncc", "gi", "mi", "psnr", "ssim")
+FORBIDDEN_IN_SLICER = ("vtk", "pyside6", "pyside6-essentials", "pyqt5", "pyqt6", "qtpy")
 
 try:
     from slicer.ScriptedLoadableModule import (
@@ -136,8 +137,10 @@ def ensure_python_dependencies(requirements_path=None):
 
     path = requirements_path or os.path.join(MODULE_DIR, "Resources", "requirements.txt")
     requirements = read_requirements(path)
-    assert not any(requirement_name(r).lower() in ("vtk", "pyside6", "pyqt5", "pyqt6", "qtpy")
-                   for r in requirements), "never install vtk or a Qt binding into Slicer"
+    forbidden = [r for r in requirements if requirement_name(r).lower() in FORBIDDEN_IN_SLICER]
+    if forbidden:
+        raise RuntimeError(f"CarmReg: {path} lists {', '.join(forbidden)}; Slicer's own VTK and Qt must never "
+                           "be replaced: remove them from the file")
     try:
         import slicer.packaging as packaging
     except ImportError:

@@ -120,6 +120,7 @@ def test_requirements_for_slicer_are_pyprojects_without_vtk_or_qt():
     requirements = module.read_requirements(ROOT / "Resources" / "requirements.txt")
     deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert sorted(requirements) == sorted(d for d in deps if module.requirement_name(d).lower() != "vtk")
+    assert not [r for r in requirements if module.requirement_name(r).lower() in module.FORBIDDEN_IN_SLICER]
     assert module.requirement_name("pylibjpeg-libjpeg>=2.1") == "pylibjpeg-libjpeg"
     assert module.missing_requirements(["numpy>=1", "no-such-distribution-carmreg>=1"]) == [
         "no-such-distribution-carmreg>=1"]
