@@ -181,7 +181,7 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
           f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
     clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
-    paths = save_result(result, out, xray.pixels, clicked)
+    paths = save_result(result, out, xray.pixels, clicked, ct=ct, ct_landmarks=ct_lm)
     _print_report(result, time.perf_counter() - t0, out)
     return result, paths
 
@@ -202,7 +202,7 @@ def _print_report(result, seconds: float, out) -> None:
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
-          f"carm.tfm ({seconds:.1f} s in all)")
+          f"carm.tfm, slicer/CarmReg.mrml ({seconds:.1f} s in all)")
 
 
 def level_summary(check: dict) -> str:

@@ -305,12 +305,14 @@ class WindowRegistration:
         return changes
 
     def export_result(self, out_dir: str | Path) -> dict:
-        """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
+        """Write result.json, overlay.png, DRR, .tfm, figures and the 3D Slicer scene (slicer/CarmReg.mrml)
+        through the logic; returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
         clicks = self.shown_clicks()
         paths = _registration_api().CarmRegLogic().save_result(
-            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks)
+            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks,
+            ct=self.ct_volume, ct_landmarks=self.ct_store.to_landmarks())
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)

@@ -435,12 +435,13 @@ class CarmRegLogic:
 
     # ------------------------------------------------------------------ result
     def save_result(self, result: RegistrationResult, out_dir, xray_pixels: np.ndarray | None = None,
-                    clicked: dict | None = None) -> dict:
-        """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``)."""
+                    clicked: dict | None = None, ct=None, ct_landmarks=None) -> dict:
+        """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``); given
+        the CT and its landmarks, the 3D Slicer scene too."""
         from carmreg.logic.report.result_files import save_result
 
         pixels = xray_pixels if xray_pixels is not None else result.xray_line_integral
-        return save_result(result, out_dir, pixels, clicked)
+        return save_result(result, out_dir, pixels, clicked, ct=ct, ct_landmarks=ct_landmarks)
 
     def result(self, state: RegistrationState) -> RegistrationResult:
         pose = CarmPose.from_array(state.pose)
