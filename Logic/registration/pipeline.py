@@ -47,6 +47,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     fixed_appearance,
     image_polarity,
+    orientation_scores,
     polarity_scores,
     storage_scores,
 )
@@ -294,9 +295,14 @@ class CarmRegLogic:
         state.appearance = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
                                            xray.sources.get("bone_dark", ""), storage)
         a = state.appearance
+        a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
+                                             a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
         if not a.clear:
             state.warnings.append(f"X-ray polarity: {a.note}")
+        if a.orientation == "as-stored" and not a.orientation_clear:
+            state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned almost as well as "
+                                  "as stored; check that the display is not mirrored or rotated")
         return a.as_dict()
 
     def _refined_polarity_scores(self, state: RegistrationState, scores: dict) -> dict:
@@ -368,13 +374,13 @@ class CarmRegLogic:
                          state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
                          p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm, p.depth_step_mm,
                          self._check_cancel)
-        polarity_clear = state.appearance is None or state.appearance.clear
+        appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        p.identify, polarity_clear)
+                                        p.identify, appearance_clear)
         else:
-            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, polarity_clear)
+            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear)
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -491,6 +497,12 @@ class CarmRegLogic:
                             "spacing and the landmarks")
         if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
             problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
+        a = state.appearance
+        if a is not None and a.orientation != "as-stored":
+            best, stored = a.orientation_scores[a.orientation], a.orientation_scores["as-stored"]
+            problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
+                            f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
+                            "acquired (head up, patient's right on the viewer's left) and register again")
         if state.identification is not None and state.identification.status == "contradicted":
             problems.append(state.identification.message)
         lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
