@@ -23,7 +23,7 @@ Stages (each a plain function in its own module, returning a small result):
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
-``sod_mm`` from it (the X-ray's DICOM DistanceSourceToPatient when known, else ``default_sod_fraction`` x SDD).
+``sod_mm`` from it (the X-ray's DICOM DistanceSourceToPatient when known, else 0.6 x SDD: ``camera.nominal_geometry``).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import CancelledError, LandmarkError, RegistrationError
-from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, project
+from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, nominal_geometry, project
 from carmreg.logic.geometry.projection_distance import mpde_mm, pde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
@@ -94,7 +94,6 @@ class RegistrationParameters:
     level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
     identify: IdentifyParameters = field(default_factory=IdentifyParameters)
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
-    default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
     magnification_range: tuple = (1.05, 3.0)
     cache_dir: str | None = None
@@ -216,8 +215,7 @@ class CarmRegLogic:
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
         pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
         _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
-        sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
-        geometry = CarmGeometry(intrinsics, tuple(float(x) for x in ct.center_lps_mm()), float(sod))
+        geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
