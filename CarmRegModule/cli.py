@@ -197,6 +197,10 @@ def _print_report(result, seconds: float, out) -> None:
         for lv in in_image) + "   (* = clicked)")
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
+    if result.appearance is not None:
+        a = result.appearance
+        print(f"X-ray appearance: {a.note}; stored as {a.storage.replace('-', ' ')}; orientation "
+              f"{a.orientation.replace('-', ' ')}{'' if a.orientation_clear else ' (unclear)'}")
     if result.level_check:
         print(level_summary(result.level_check))
     for w in result.warnings:
