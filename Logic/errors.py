@@ -28,3 +28,13 @@ class RegistrationError(CarmRegError):
 
 class CancelledError(CarmRegError):
     """The user cancelled a long computation."""
+
+
+def quote(value, limit: int = 60) -> str:
+    """``repr(value)`` for an error message, cut to ``limit`` characters (a 10 MB label stays one short line)."""
+    text = repr(value) if not isinstance(value, str) or len(value) <= limit else repr(value[:limit])
+    if len(text) > limit + 2:
+        text = text[:limit] + "..."
+    if isinstance(value, str | bytes | list | dict) and len(value) > limit:
+        text += f" ({len(value)} {'characters' if isinstance(value, str) else 'items'})"
+    return text

@@ -56,6 +56,7 @@ import numpy as np
 from carmreg.logic.errors import GeometryError, InputFileError
 from carmreg.logic.geometry.camera import CarmIntrinsics
 from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.io.limits import regular_file
 
 DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
@@ -269,6 +270,7 @@ def _check_file(path: Path) -> None:
         raise InputFileError(f"{path}: X-ray file not found")
     if path.is_dir():
         raise InputFileError(f"{path}: is a folder; give one X-ray file (DICOM, PNG or TIFF)")
+    regular_file(path, "X-ray file")
     if path.stat().st_size == 0:
         raise InputFileError(f"{path}: X-ray file is empty")
 
