@@ -50,6 +50,11 @@ NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patie
 POSE_NAMES = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
+MAX_DETECTOR_MM = 600.0
+"""Largest detector side accepted: flat panels reach 43 cm, image intensifiers 40 cm (Ø), so 60 cm leaves
+margin while refusing a pixel-spacing typo (2.5 mm for 0.25) before it sizes a 2.5 m detector and its DRRs."""
+
+
 @dataclass(frozen=True)
 class CarmIntrinsics:
     """Detector and source-to-detector distance.
@@ -84,7 +89,14 @@ class CarmIntrinsics:
             raise GeometryError(f"pixel spacing ({du}, {dv}) mm is not plausible: give --pixel-spacing-mm "
                                 "between 0.01 and 10 (detector pixel size, not calibrated to the patient)")
         if cols < 2 or rows < 2:
-            raise GeometryError(f"detector size {cols}x{rows} px is too small")
+            raise GeometryError(f"detector size {cols}x{rows} px: an X-ray needs at least 2 x 2 pixels; give the "
+                                "image's own size (columns, rows)")
+        width_mm, height_mm = cols * du, rows * dv
+        if max(width_mm, height_mm) > MAX_DETECTOR_MM:
+            raise GeometryError(f"pixel spacing ({du:g}, {dv:g}) mm makes the {cols}x{rows} px detector "
+                                f"{width_mm:.0f} x {height_mm:.0f} mm, larger than any C-arm detector (at most "
+                                f"{MAX_DETECTOR_MM:.0f} mm across): check --pixel-spacing-mm (detector pixels are "
+                                "about 0.1-1 mm)")
         if not (np.isfinite(u0) and np.isfinite(v0) and -0.5 <= u0 <= cols - 0.5 and -0.5 <= v0 <= rows - 0.5):
             raise GeometryError(f"principal point ({u0}, {v0}) px lies off the {cols}x{rows} detector: "
                                 "give --principal-point-px inside the image or omit it for the centre")

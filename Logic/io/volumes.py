@@ -50,6 +50,10 @@ from carmreg.logic.io.xray import (
 
 MAX_VOLUME_BYTES = 8 * 1024**3
 """Largest volume (bytes in memory) a reader accepts."""
+MAX_CT_EXTENT_MM = 2100.0
+"""Longest CT axis accepted (a whole-body scan is about 2 m)."""
+MAX_CT_SECTION_MM2 = 1000.0 * 1000.0
+"""Largest product of the two shorter axes (a CT field of view is at most about 700 mm)."""
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 SUPPORTED = "a DICOM series folder, .nii/.nii.gz, .nrrd/.nhdr or .mha/.mhd"
 
@@ -134,7 +138,23 @@ def _checked_volume(data: np.ndarray, affine: np.ndarray, path: Path, meta: dict
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise InputFileError(f"{path}: {int(np.count_nonzero(~np.isfinite(data)))} voxel(s) are NaN or "
                                  "infinite; fill them (e.g. with -1000 HU, air) before loading the CT")
-    return Volume(data, affine, str(path), meta)
+    volume = Volume(data, affine, str(path), meta)
+    check_extent(volume.shape, volume.spacing_mm, path)
+    return volume
+
+
+def check_extent(shape, spacing_mm, path: Path | str) -> None:
+    """Refuse a CT whose physical box is beyond any patient (spacing in um or cm written as mm): every
+    resampled level (``resample_isotropic``) is sized by this box, so it is checked before any is made."""
+    extent_mm = np.asarray(shape, float) * np.asarray(spacing_mm, float)
+    box = sorted(extent_mm)
+    if box[-1] > MAX_CT_EXTENT_MM or box[0] * box[1] > MAX_CT_SECTION_MM2:
+        spacing = ", ".join(f"{s:.4g}" for s in spacing_mm)
+        raise InputFileError(f"{path}: the CT spans {' x '.join(f'{e:.0f}' for e in extent_mm)} mm "
+                             f"({'x'.join(str(int(n)) for n in shape)} voxels of {spacing} mm), larger than a "
+                             f"patient (at most {MAX_CT_EXTENT_MM:.0f} mm long, "
+                             f"{MAX_CT_SECTION_MM2 ** 0.5:.0f} mm across): the voxel spacing in the header is "
+                             "probably not in mm (um or cm?); fix it and save the CT again")
 
 
 def _spatial_3d(data: np.ndarray, path: Path) -> np.ndarray:

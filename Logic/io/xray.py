@@ -365,7 +365,10 @@ def _select_frame(stack: np.ndarray, frame: int | None, path: Path) -> tuple[np.
             raise InputFileError(f"{path}: holds {n} frames; choose one with --frame N (0 to {n - 1}), "
                                  "e.g. the last, sharpest frame of a fluoroscopy run")
         frame = 0
-    if not -n <= frame < n:
+    if frame < 0:
+        raise InputFileError(f"{path}: --frame {frame}: frames are counted from 0 (the first) to {n - 1} (the "
+                             "last); give a frame number in that range")
+    if not frame < n:
         raise InputFileError(f"{path}: frame {frame} does not exist; the file holds {n} frame(s), "
                              f"choose --frame 0 to {n - 1}")
     return stack[frame], frame % n
@@ -403,12 +406,30 @@ def _read_dicom(path: Path, frame: int | None) -> _Partial:
     if monochrome1:
         pixels = _invert_monochrome1(pixels, ds, path)
         meta["note_inverted"] = "MONOCHROME1: stored values inverted so that larger = brighter"
+    pixels = _modality_lut(pixels, ds, frame, path, meta)
     if dropped:
         meta["warning_unreadable_elements"] = ", ".join(dropped[:6]) + (" ..." if len(dropped) > 6 else "")
     part = _Partial(pixels, True, meta=meta)
     part.bone_dark, part.sources["bone_dark"] = _dicom_bone_dark(ds, modality, monochrome1)
     _dicom_geometry(ds, part, frame, path)
     return part
+
+
+def _modality_lut(pixels: np.ndarray, ds, frame: int, path: Path, meta: dict) -> np.ndarray:
+    """Apply the DICOM modality LUT ``value = RescaleSlope * stored + RescaleIntercept`` (top level or this
+    frame's functional group), so the image is in the modality's units, as every DICOM viewer shows it.
+    Linear with a positive slope, it commutes with the MONOCHROME1 inversion applied before."""
+    slope = dicom_numbers(_find(ds, "RescaleSlope", frame), 1, "RescaleSlope", path)
+    intercept = dicom_numbers(_find(ds, "RescaleIntercept", frame), 1, "RescaleIntercept", path)
+    slope = 1.0 if slope is None else float(slope[0])
+    intercept = 0.0 if intercept is None else float(intercept[0])
+    if not (np.isfinite(slope) and np.isfinite(intercept) and slope != 0):
+        raise InputFileError(f"{path}: DICOM RescaleSlope {slope:g} / RescaleIntercept {intercept:g} cannot map "
+                             "the stored values; the header is damaged, export the X-ray again")
+    if slope == 1.0 and intercept == 0.0:
+        return pixels
+    meta["modality_lut"] = {"slope": slope, "intercept": intercept}
+    return (pixels * np.float32(slope) + np.float32(intercept)).astype(np.float32)
 
 
 def _dcmread(path: Path):

@@ -411,7 +411,9 @@ class CarmRegLogic:
             ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
             level_check=state.identification.as_dict() if state.identification else None,
             inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
-                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
+                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
+                    "xray_frame": state.xray.meta.get("frame"),
+                    "xray_frames_in_file": state.xray.meta.get("n_frames")})
 
     def _checks(self, state: RegistrationState, pose: CarmPose) -> list[str]:
         """The pipeline's own sanity checks; any message here makes ``ok`` False."""

@@ -1,6 +1,7 @@
 """Write a registration result: result.json, overlay, DRR (PNG + NRRD with geometry), .tfm, figures.
 
-Files (all written atomically into ``out_dir``):
+Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.transaction``; plus its
+``carmreg-manifest.json`` naming and checksumming every file):
 - ``result.json``: ``ok`` and ``warnings``; ``level_check`` (which vertebra is which: the mode - named,
   partly_named, unnamed or image_only -, the names assigned to the clicks, the winner and runner-up labellings,
   the margin between them and the status confident / ambiguous / contradicted / proposed (no clicks); see
@@ -30,8 +31,10 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from carmreg.logic import __version__
+from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
+from carmreg.logic.io.transaction import FolderTransaction
 
 FITTED_RGB = (40, 220, 90)
 CLICK_RGB = (255, 60, 60)
@@ -224,12 +227,25 @@ def similarity_figure(result) -> bytes:
 
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 bone_dark: bool = True) -> dict:
-    """Write every output file; returns {name: path}."""
+    """Write every output file as one transaction (``FolderTransaction``): ``out_dir`` then holds exactly this
+    result's files (and the user's own), or - after a failure, a full disk or a kill at any moment - exactly
+    what it held before. Returns {name: final path}. Anything written under ``out`` below goes into the
+    transaction. A failure to write raises CarmRegError naming the folder and the reason."""
+    target = Path(out_dir)
+    try:
+        with FolderTransaction(target) as out:
+            paths = _write_result_files(result, out, xray_pixels, clicked, bone_dark)
+    except OSError as exc:
+        raise CarmRegError(f"{target}: could not write the results ({exc.strerror or exc}); the folder still "
+                           "holds its previous content: free some space or choose another --out") from None
+    return {name: target / Path(path).name for name, path in paths.items()}
+
+
+def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None,
+                        bone_dark: bool) -> dict:
     from carmreg.logic.image.prepare import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
                                                                     result.levels, clicked,

@@ -5,7 +5,6 @@ Every file is made by the test, small; "huge" files are sparse (their size is a 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -13,9 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-from carmreg.cli import main
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.volumes import write_volume_nrrd
 
