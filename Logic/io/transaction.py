@@ -127,9 +127,9 @@ def sweep_stale(target: str | Path) -> list[Path]:
 def check_writable_folder(target: str | Path) -> None:
     """Refuse, before any work, an output folder where no transaction can be written (probe: a staging
     folder made and removed in the nearest existing ancestor, or in the target itself)."""
-    target = Path(target)
     if str(target).strip() == "":
         raise CarmRegError("--out '' is empty; give the output folder")
+    target = Path(target)
     if target.exists() and not target.is_dir():
         raise CarmRegError(f"--out {target} is a file; give a folder for the results")
     places = [next((p for p in target.absolute().parents if p.exists()), Path("/"))]

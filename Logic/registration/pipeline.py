@@ -57,6 +57,7 @@ from carmreg.logic.registration.levels import (
     identify_from_image,
     identify_levels,
 )
+from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 from carmreg.logic.registration.spatial import SpatialResult, spatial_search
 from carmreg.logic.similarity.metrics import METRICS
 
@@ -204,6 +205,8 @@ class CarmRegLogic:
         if intrinsics.size_px != xray.size_px:
             raise RegistrationError(f"the geometry's detector size {intrinsics.size_px} px differs from the "
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
+        check_xray_content(xray.pixels, xray.source)
+        check_ct_content(ct.hu, ct.source)
         pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
         _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
