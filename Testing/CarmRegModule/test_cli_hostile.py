@@ -12,6 +12,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+from PIL import Image
+from test_cli_errors import assert_one_line_error, register_args, run
+from test_cli_errors import case as case  # noqa: F401 - the small valid case (a fixture)
 
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.volumes import write_volume_nrrd
@@ -65,3 +69,47 @@ def test_kernels_run_when_no_cache_folder_is_writable(tmp_path):
     notes = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(notes) == 1 and notes[0].startswith("carmreg: note: no writable cache for compiled kernels")
     assert (tmp_path / "drr.nrrd").stat().st_size > 0
+
+
+# ------------------------------------------------------------------------ numbers checked before any work
+
+@pytest.mark.parametrize(("replace", "message"), [
+    ({"seed": -1}, "--seed -1 is not a valid seed: give a whole number from 0 to 4294967295"),
+    ({"seed": 2**32}, "--seed 4294967296 is not a valid seed"),
+    ({"frame": -1}, "--frame -1: frames are counted from 0 (the first)"),
+])
+def test_cli_numbers_are_refused_before_any_work(case, capsys, replace, message):
+    code, err = run(capsys, register_args(case, **replace))
+    assert_one_line_error(code, err, message)
+    assert not (case["folder"] / "out").exists()
+
+
+def test_empty_out_and_absurd_drr_and_simulate_numbers(case, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run(capsys, ["register", "--ct", str(case["ct"]), "--ct-landmarks", str(case["ct_landmarks"]),
+                             "--xray", str(case["xray"]), "--no-clicks", "--out", ""])
+    assert_one_line_error(code, err, "--out '' is empty; give the output folder")
+    drr = ["drr", "--ct", str(case["ct"]), "--out", str(tmp_path / "d"), "--size-px", "16", "16"]
+    code, err = run(capsys, [*drr, "--sdd-mm", "0"])
+    assert_one_line_error(code, err, "source-to-detector distance 0.0 mm is not plausible")
+    code, err = run(capsys, [*drr, "--sod-mm", "0"])
+    assert_one_line_error(code, err, "source-to-isocentre distance 0.0 mm must lie between 0 and")
+    code, err = run(capsys, ["simulate", "--out", str(tmp_path / "s"), "--size-px", "0"])
+    assert_one_line_error(code, err, "--size-px 0 must be between 64 and 4096")
+    code, err = run(capsys, ["register", *register_args(case, out="/proc/carmreg-out")[1:]])
+    assert_one_line_error(code, err, "--out /proc/carmreg-out: cannot write there")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------ garbage is refused
+
+def test_noise_xray_and_all_air_ct_are_refused_before_registering(case, capsys):
+    noise = np.random.default_rng(0).integers(0, 65535, case["pixels"].shape, dtype=np.uint16)
+    png = case["folder"] / "noise.png"
+    Image.fromarray(noise).save(png)
+    code, err = run(capsys, register_args(case, xray=png, sdd_mm=1000, pixel_spacing_mm=1.5))
+    assert_one_line_error(code, err, "noise.png: the image is noise, not anatomy")
+    air = write_volume_nrrd(case["folder"] / "air.nrrd",
+                            Volume(np.full((40, 40, 40), -1000, np.int16), np.diag([3.0, 3.0, 3.0, 1.0])))
+    code, err = run(capsys, register_args(case, ct=air))
+    assert_one_line_error(code, err, "air.nrrd: does not look like a CT of a patient (air 100.00 %")
