@@ -113,3 +113,22 @@ def test_noise_xray_and_all_air_ct_are_refused_before_registering(case, capsys):
                             Volume(np.full((40, 40, 40), -1000, np.int16), np.diag([3.0, 3.0, 3.0, 1.0])))
     code, err = run(capsys, register_args(case, ct=air))
     assert_one_line_error(code, err, "air.nrrd: does not look like a CT of a patient (air 100.00 %")
+
+
+def test_sigterm_at_any_moment_leaves_no_temporary_files(case, tmp_path):
+    """SIGTERM while registering or saving unwinds like Ctrl-C: no hidden temporary file in the cache, no
+    staging folder beside the output, the output folder absent or complete."""
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    argv = [a for a in register_args(case, out=out) if a != "--no-cache"] + ["--cache-dir", str(cache)]
+    for delay in (2.0, 4.0):
+        proc = subprocess.Popen([sys.executable, "-m", "carmreg.cli", *argv], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            proc.wait(timeout=delay)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+        _, err = proc.communicate(timeout=120)
+        assert "Traceback" not in err
+        assert [p.name for p in cache.glob(".*")] == [] if cache.exists() else True
+        assert [p.name for p in tmp_path.glob(".out*")] == []
+        assert not out.exists() or (out / "carmreg-manifest.json").is_file()
