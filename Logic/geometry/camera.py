@@ -50,6 +50,8 @@ NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patie
 POSE_NAMES = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
+MAX_PIXEL_ASPECT = 3.0
+"""Largest ratio of column to row spacing accepted (detector pixels are square or nearly)."""
 MAX_DETECTOR_MM = 600.0
 """Largest detector side accepted: flat panels reach 43 cm, image intensifiers 40 cm (Ø), so 60 cm leaves
 margin while refusing a pixel-spacing typo (2.5 mm for 0.25) before it sizes a 2.5 m detector and its DRRs."""
@@ -88,6 +90,10 @@ class CarmIntrinsics:
         if not (np.isfinite(du) and np.isfinite(dv) and 0.01 <= du <= 10.0 and 0.01 <= dv <= 10.0):
             raise GeometryError(f"pixel spacing ({du}, {dv}) mm is not plausible: give --pixel-spacing-mm "
                                 "between 0.01 and 10 (detector pixel size, not calibrated to the patient)")
+        if max(du, dv) > MAX_PIXEL_ASPECT * min(du, dv):
+            raise GeometryError(f"pixel spacing ({du:g}, {dv:g}) mm: columns and rows differ by "
+                                f"{max(du, dv) / min(du, dv):.1f}x, but detector pixels are square or nearly: check "
+                                "--pixel-spacing-mm (column, row) or the file's ImagerPixelSpacing (row\\column)")
         if cols < 2 or rows < 2:
             raise GeometryError(f"detector size {cols}x{rows} px: an X-ray needs at least 2 x 2 pixels; give the "
                                 "image's own size (columns, rows)")

@@ -150,7 +150,10 @@ class FolderTransaction:
     """``with FolderTransaction(out) as stage: write files into stage`` -> ``out`` holds exactly them (plus
     the user's own files), or, on any failure or kill, exactly what it held before."""
 
-    def __init__(self, target: str | Path):
+    def __init__(self, target: str | Path, owned_names=()):
+        """owned_names: names the writer may produce even when the previous content has no manifest (an old
+        result folder): never carried over from it."""
+        self.owned = set(owned_names)
         self.target = Path(os.path.realpath(target)) if Path(target).is_symlink() else Path(target)
         self.stage: Path | None = None
         self.in_place = False
@@ -190,7 +193,7 @@ class FolderTransaction:
         """Link the target's entries that are neither new nor written by the previous transaction."""
         if not self.target.is_dir():
             return
-        previous = set(read_manifest(self.target) or {})
+        previous = set(read_manifest(self.target) or {}) | self.owned
         for entry in self.target.iterdir():
             name = entry.name
             if name in files or name in previous or name == MANIFEST or name.startswith(f".{_NEW}-"):
@@ -219,9 +222,9 @@ class FolderTransaction:
         _fsync_dir(self.target.parent)
 
     def _commit_in_place(self, files: dict) -> None:
-        previous = read_manifest(self.target) or {}
+        previous = set(read_manifest(self.target) or {}) | self.owned
         (self.target / MANIFEST).unlink(missing_ok=True)
-        for name in set(previous) - set(files):
+        for name in previous - set(files):
             if "/" not in name and name not in (".", ".."):
                 (self.target / name).unlink(missing_ok=True)
         for name in files:

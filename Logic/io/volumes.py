@@ -72,7 +72,11 @@ def load_volume(path: str | Path, *, series_uid: str | None = None) -> Volume:
         if path.stat().st_size == 0:
             raise InputFileError(f"{path}: file is empty")
     with quiet_libraries() as notes:
-        volume = _read_any(path, series_uid)
+        try:
+            volume = _read_any(path, series_uid)
+        except OSError as exc:  # permission denied, I/O error, symlink loop: one line, not a traceback
+            raise InputFileError(f"{getattr(exc, 'filename', None) or path}: the CT cannot be read "
+                                 f"({exc.strerror or exc}); check its permissions or copy it again") from None
     if notes:
         volume.meta["library_warnings"] = notes
     return volume

@@ -234,13 +234,17 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
     path = Path(path)
     _check_file(path)
     with quiet_libraries() as notes:
-        if _is_dicom(path):
-            image = _read_dicom(path, frame)
-        elif path.suffix.lower() in IMAGE_SUFFIXES:
-            image = _read_raster(path, frame)
-        else:
-            raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
-                                 "PNG/TIFF")
+        try:
+            if _is_dicom(path):
+                image = _read_dicom(path, frame)
+            elif path.suffix.lower() in IMAGE_SUFFIXES:
+                image = _read_raster(path, frame)
+            else:
+                raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
+                                     "PNG/TIFF")
+        except OSError as exc:  # permission denied, I/O error: one line, not a traceback
+            raise InputFileError(f"{path}: the X-ray file cannot be read ({exc.strerror or exc}); check its "
+                                 "permissions or copy it again") from None
     if notes:
         image.meta["library_warnings"] = notes
     manual = {"sdd_mm": sdd_mm, "pixel_spacing_mm": _spacing_pair(pixel_spacing_mm),

@@ -225,6 +225,11 @@ def similarity_figure(result) -> bytes:
     return data
 
 
+RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm", "convergence.png",
+                "similarity_maps.png")
+"""Every name ``save_result`` has written (an old folder's copies are replaced or removed, never kept)."""
+
+
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 bone_dark: bool = True) -> dict:
     """Write every output file as one transaction (``FolderTransaction``): ``out_dir`` then holds exactly this
@@ -233,7 +238,7 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     transaction. A failure to write raises CarmRegError naming the folder and the reason."""
     target = Path(out_dir)
     try:
-        with FolderTransaction(target) as out:
+        with FolderTransaction(target, owned_names=RESULT_FILES) as out:
             paths = _write_result_files(result, out, xray_pixels, clicked, bone_dark)
     except OSError as exc:
         raise CarmRegError(f"{target}: could not write the results ({exc.strerror or exc}); the folder still "
