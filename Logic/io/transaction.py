@@ -169,6 +169,7 @@ class FolderTransaction:
                 raise
             self.in_place = True
             self.stage = Path(tempfile.mkdtemp(prefix=f".{_NEW}-{os.getpid()}-", dir=self.target))
+        os.chmod(self.stage, 0o777 & ~_umask())  # mkdtemp makes 0700; the result gets the user's usual mode
         return self.stage
 
     def __exit__(self, exc_type, exc, tb) -> bool:
@@ -230,6 +231,12 @@ class FolderTransaction:
         for name in files:
             os.replace(self.stage / name, self.target / name)
         self._write_manifest(self.target, files)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _link_or_copy(src, dst) -> None:

@@ -231,6 +231,9 @@ def test_transaction_failure_leaves_the_old_folder_and_keeps_user_files(tmp_path
     out = tmp_path / "out"
     with FolderTransaction(out) as stage:
         _write_version(stage, 1, n_files=5)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # the user's usual mode, not mkdtemp's 0700
     (out / "my-notes.txt").write_text("mine")
     with pytest.raises(RuntimeError), FolderTransaction(out) as stage:
         _write_version(stage, 2)
