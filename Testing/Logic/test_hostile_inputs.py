@@ -161,6 +161,9 @@ def test_detector_larger_than_any_carm_is_refused(tmp_path):
     with pytest.raises(GeometryError, match="2560 x 2560 mm"):
         load_xray(path, pixel_spacing_mm=2.5)
     assert load_xray(path, pixel_spacing_mm=0.25).intrinsics.pixel_spacing_mm == (0.25, 0.25)
+    with pytest.raises(GeometryError, match=r"xa.dcm: pixel spacing \(0.1, 0.31\) mm: columns and rows differ by "
+                       r"3.1x"):
+        load_xray(path, pixel_spacing_mm=(0.1, 0.31))
 
 
 def test_database_budget_is_checked_before_allocating():
@@ -371,3 +374,24 @@ def test_xray_dicom_modality_lut_is_applied(tmp_path):
     assert xray.meta["modality_lut"] == {"slope": 2.0, "intercept": -150.0}
     with pytest.raises(InputFileError, match=r"lut.dcm: --frame -1: frames are counted from 0"):
         load_xray(path, frame=-1)
+
+
+def test_full_disk_during_save_result_is_one_line_and_keeps_the_old_result(tmp_path, monkeypatch):
+    import errno
+
+    from carmreg.logic.report import result_files
+
+    out = tmp_path / "out"
+    with FolderTransaction(out, owned_names=result_files.RESULT_FILES) as stage:
+        (stage / "result.json").write_text('{"ok": true, "old": 1}')
+
+    def full_disk(result, stage, *args):
+        (stage / "result.json").write_text('{"ok": true, "new": 1}')
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(result_files, "_write_result_files", full_disk)
+    with pytest.raises(CarmRegError, match=r"out: could not write the results \(No space left on device\); the "
+                       "folder still holds its previous content"):
+        result_files.save_result(None, out, None)
+    assert json.loads((out / "result.json").read_text()) == {"ok": True, "old": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
