@@ -95,3 +95,18 @@ def inflate_exactly(handle: BinaryIO, n_bytes: int, path: Path, what: str, wbits
         raise InputFileError(f"{path}: the compressed {what} inflate to {len(out)} bytes but its header needs "
                              f"{n_bytes}; the file is truncated, copy it again")
     return out
+
+
+DICOM_HEADER_SLACK_BYTES = 64 * 1024**2
+"""Room for a DICOM file's header and private elements (thumbnails, vendor blobs) beside its pixels."""
+
+
+def check_dicom_size(path: Path, rows: int, cols: int, frames: int = 1, bytes_per_pixel: int = 2) -> None:
+    """Refuse a DICOM file far larger than the pixels its header describes (pydicom would read it whole):
+    more than the uncompressed pixels plus ``DICOM_HEADER_SLACK_BYTES``."""
+    size = os.stat(path).st_size
+    pixel_bytes = max(int(rows), 0) * max(int(cols), 0) * max(int(frames), 1) * max(int(bytes_per_pixel), 1)
+    if size > pixel_bytes + DICOM_HEADER_SLACK_BYTES:
+        raise InputFileError(f"{path}: the file holds {size / 1024**2:.0f} MB, far more than its {cols} x {rows} px "
+                             f"x {frames} frame(s) image needs ({pixel_bytes / 1024**2:.1f} MB); the file is "
+                             "damaged or hostile, export it again")

@@ -38,7 +38,7 @@ import numpy as np
 from carmreg.logic.errors import InputFileError
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.atomic import atomic_write
-from carmreg.logic.io.limits import file_kind, inflate_exactly, read_exactly, regular_file
+from carmreg.logic.io.limits import check_dicom_size, file_kind, inflate_exactly, read_exactly, regular_file
 from carmreg.logic.io.xray import (
     DICOM_PARSE_ERRORS,
     describe,
@@ -786,7 +786,10 @@ def _read_slices(ordered: list, stored_pixels) -> np.ndarray:
     integer = all(s == 1.0 and b == round(b) for s, b in rescale)
     cols, rows = _columns_rows(first, ordered[0][0])
     hu = np.empty((cols, rows, len(ordered)), np.int16 if integer else np.float32, order="F")
-    for k, ((key, _), (slope, intercept)) in enumerate(zip(ordered, rescale, strict=True)):
+    for k, ((key, ds), (slope, intercept)) in enumerate(zip(ordered, rescale, strict=True)):
+        if isinstance(key, Path):
+            samples = dicom_int(ds, "SamplesPerPixel", 1, key)
+            check_dicom_size(key, rows, cols, 1, samples * max(1, dicom_int(ds, "BitsAllocated", 16, key) // 8))
         stored = stored_pixels(key)
         if stored.shape != (rows, cols):
             raise InputFileError(f"{key}: pixel data of shape {stored.shape} does not match Rows x Columns "

@@ -56,7 +56,7 @@ import numpy as np
 from carmreg.logic.errors import GeometryError, InputFileError
 from carmreg.logic.geometry.camera import CarmIntrinsics
 from carmreg.logic.io.atomic import atomic_write
-from carmreg.logic.io.limits import regular_file
+from carmreg.logic.io.limits import check_dicom_size, regular_file
 
 DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
@@ -440,6 +440,13 @@ def _dcmread(path: Path):
     import pydicom
 
     try:
+        head = pydicom.dcmread(path, force=True, stop_before_pixels=True)
+        if "Rows" in head and "Columns" in head:  # before pydicom reads the whole file into memory
+            frames = dicom_int(head, "NumberOfFrames", 1, path)
+            per_pixel = dicom_int(head, "SamplesPerPixel", 1, path) * max(1, dicom_int(head, "BitsAllocated", 16,
+                                                                                      path) // 8)
+            check_dicom_size(path, dicom_int(head, "Rows", 0, path), dicom_int(head, "Columns", 0, path), frames,
+                             per_pixel)
         ds = pydicom.dcmread(path, force=True)
     except DICOM_PARSE_ERRORS as exc:
         raise InputFileError(f"{path}: not a readable DICOM file ({describe(exc, 100)})") from None

@@ -395,3 +395,19 @@ def test_full_disk_during_save_result_is_one_line_and_keeps_the_old_result(tmp_p
         result_files.save_result(None, out, None)
     assert json.loads((out / "result.json").read_text()) == {"ok": True, "old": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_dicom_far_larger_than_its_pixels_is_refused_before_reading(tmp_path):
+    """An X-ray and a CT slice followed by a 3 GiB hole: refused from the file size, nothing read."""
+    pixels = np.tile(np.arange(100, 164, dtype=np.uint16), (64, 1))
+    xa = write_xray_dicom(tmp_path / "xa.dcm", pixels, CarmIntrinsics(1000.0, (0.3, 0.3), (64, 64)))
+    series = write_dicom_series(tmp_path / "s", _ct(n=6))
+    for path in (xa, series[2]):
+        with open(path, "r+b") as handle:
+            handle.truncate(3 * 1024**3)
+    with bounded():
+        with pytest.raises(InputFileError, match=r"xa.dcm: the file holds 3072 MB, far more than its 64 x 64 px x "
+                           r"1 frame\(s\) image needs \(0.0 MB\)"):
+            load_xray(xa)
+        with pytest.raises(InputFileError, match=r"slice_0002.dcm: the file holds 3072 MB, far more than its 6 x 6"):
+            load_volume(tmp_path / "s")
