@@ -5,7 +5,8 @@ numba's ``cache=True`` keeps compiled kernels on disk (beside the source in ``__
 account, a container with a random UID, a read-only install) numba refuses to even define the function
 ("cannot cache function ...: no locator available"). ``njit`` here asks for the disk cache and, when numba
 finds no writable place, compiles the kernel in memory instead (every process then compiles it once, about
-10 s) and says so once, in one line on the ``carmreg`` logger (stderr when logging is not configured).
+10 s) and says so once, in one line on the ``carmreg`` logger (stderr when logging is not configured). A cache
+folder that fills up later (no space left) costs the same note, not a traceback.
 """
 
 from __future__ import annotations
@@ -31,15 +32,34 @@ def njit(**options):
 
     def decorate(func):
         try:
-            return numba.njit(cache=True, **options)(func)
+            dispatcher = numba.njit(cache=True, **options)(func)
         except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available for file ..."
             if "locator" not in str(exc):
                 raise
             _note_no_cache(func.__qualname__, "neither the install, $NUMBA_CACHE_DIR nor the user cache folder "
                            "is writable")
             return numba.njit(cache=False, **options)(func)
+        _tolerate_failed_saves(dispatcher, func.__qualname__)
+        return dispatcher
 
     return decorate
+
+
+def _tolerate_failed_saves(dispatcher, name: str) -> None:
+    """A cache folder that fills up or turns read-only later (numba writes after compiling, and the kernel
+    is already usable then): the save is skipped with the one-line note instead of a traceback."""
+    cache = getattr(dispatcher, "_cache", None)
+    save = getattr(cache, "save_overload", None)
+    if save is None:
+        return
+
+    def save_or_note(sig, data):
+        try:
+            save(sig, data)
+        except OSError as exc:
+            _note_no_cache(name, f"writing to it failed: {exc.strerror or exc}")
+
+    cache.save_overload = save_or_note
 
 
 def kernels_cached() -> bool:

@@ -132,3 +132,26 @@ def test_sigterm_at_any_moment_leaves_no_temporary_files(case, tmp_path):
         assert [p.name for p in cache.glob(".*")] == [] if cache.exists() else True
         assert [p.name for p in tmp_path.glob(".out*")] == []
         assert not out.exists() or (out / "carmreg-manifest.json").is_file()
+
+
+def test_a_full_kernel_cache_costs_a_note_not_a_traceback(tmp_path):
+    """$NUMBA_CACHE_DIR on a file system with no space left (a 64 kB tmpfs, filled): the kernel compiles, runs,
+    and the failed save is one note line. Needs root (a private mount namespace); skipped otherwise."""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("needs root and unshare to mount a full file system")
+    full = tmp_path / "full"
+    full.mkdir()
+    script = tmp_path / "kernel.py"
+    script.write_text("from carmreg.logic.jit import njit\n\n\n@njit()\ndef add(a, b):\n    return a + b\n\n\n"
+                      "print(add(2, 3))\n")
+    shell = (f"mount -t tmpfs -o size=64k tmpfs {full} || exit 77; "
+             f"dd if=/dev/zero of={full}/fill bs=4k count=100 2>/dev/null; exec {sys.executable} {script}")
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", shell], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "NUMBA_CACHE_DIR": str(full)})
+    if proc.returncode == 77:
+        pytest.skip("cannot mount a tmpfs here")
+    assert proc.returncode == 0 and proc.stdout == "5\n", proc.stderr
+    assert proc.stderr.splitlines() == ["carmreg: note: no writable cache for compiled kernels (writing to it "
+                                        "failed: No space left on device); they are compiled in memory in every "
+                                        "run (about 10 s more; set NUMBA_CACHE_DIR to a writable folder to keep "
+                                        "them)"]
