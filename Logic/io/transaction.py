@@ -16,7 +16,8 @@ they are carried into the new content (hard links, else copies). Any exception (
 SystemExit, e.g. from SIGTERM) deletes the staging folder; a SIGKILL leaves it, and the next transaction on the
 same target sweeps every staging folder whose process is gone.
 
-When the parent folder cannot be written (the target is an existing writable folder in a read-only parent),
+When the parent folder cannot be written (the target is an existing writable folder in a read-only parent) or
+the target is a mount point (which cannot be renamed),
 the files are staged inside the target and moved in one by one, the old manifest removed first and the new one
 written last: readers that trust only a complete manifest (``read_manifest``) still never see a mix.
 """
@@ -163,6 +164,8 @@ class FolderTransaction:
         self.target.parent.mkdir(parents=True, exist_ok=True)
         prefix = f".{self.target.name}.{_NEW}-{os.getpid()}-"
         try:
+            if self.target.is_dir() and os.path.ismount(self.target):
+                raise PermissionError("a mount point cannot be renamed")
             self.stage = Path(tempfile.mkdtemp(prefix=prefix, dir=self.target.parent))
         except PermissionError:
             if not self.target.is_dir():

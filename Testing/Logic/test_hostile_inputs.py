@@ -9,6 +9,7 @@ from __future__ import annotations
 import gzip
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -411,3 +412,29 @@ def test_dicom_far_larger_than_its_pixels_is_refused_before_reading(tmp_path):
             load_xray(xa)
         with pytest.raises(InputFileError, match=r"slice_0002.dcm: the file holds 3072 MB, far more than its 6 x 6"):
             load_volume(tmp_path / "s")
+
+
+def test_a_mount_point_as_output_is_written_in_place_behind_its_manifest(tmp_path):
+    """A result folder that is a mount point cannot be swapped: its files are replaced one by one, the old
+    manifest removed first and the new one written last (root only: a private mount namespace)."""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("needs root and unshare to mount a file system")
+    out = tmp_path / "usb"
+    out.mkdir()
+    script = tmp_path / "save.py"
+    script.write_text(textwrap.dedent(f"""
+        from pathlib import Path
+        from carmreg.logic.io.transaction import FolderTransaction, read_manifest
+        out = Path({str(out)!r})
+        for version in (1, 2):
+            with FolderTransaction(out, owned_names=["old.txt"]) as stage:
+                (stage / f"v{{version}}.txt").write_text(str(version))
+        print(sorted(p.name for p in out.iterdir()), sorted(read_manifest(out)))
+    """))
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", f"mount -t tmpfs tmpfs {out} || exit 77; "
+                           f"echo old > {out}/old.txt; echo mine > {out}/mine.txt; exec {sys.executable} {script}"],
+                          capture_output=True, text=True, timeout=120)
+    if proc.returncode == 77:
+        pytest.skip("cannot mount a tmpfs here")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "['carmreg-manifest.json', 'mine.txt', 'v2.txt'] ['v2.txt']"
