@@ -185,8 +185,17 @@ class FolderTransaction:
         return False
 
     def _written(self) -> dict:
-        return {p.name: {"bytes": p.stat().st_size, "sha256": _sha256(p)} for p in sorted(self.stage.iterdir())
-                if p.is_file() and p.name != MANIFEST}
+        """{relative posix path: {"bytes", "sha256"}} of every file written into the stage (subfolders too)."""
+        files = {}
+        for path in sorted(self.stage.rglob("*")):
+            name = path.relative_to(self.stage).as_posix()
+            if path.is_file() and not path.is_symlink() and name != MANIFEST:
+                files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+        return files
+
+    def _previous_entries(self) -> set[str]:
+        """Top-level names the previous transaction wrote (from its manifest) plus ``owned_names``."""
+        return {name.split("/")[0] for name in read_manifest(self.target) or {}} | self.owned
 
     def _write_manifest(self, folder: Path, files: dict) -> None:
         from carmreg.logic.io.atomic import atomic_write_json
@@ -197,10 +206,10 @@ class FolderTransaction:
         """Link the target's entries that are neither new nor written by the previous transaction."""
         if not self.target.is_dir():
             return
-        previous = set(read_manifest(self.target) or {}) | self.owned
+        skip = self._previous_entries() | {name.split("/")[0] for name in files} | {MANIFEST}
         for entry in self.target.iterdir():
             name = entry.name
-            if name in files or name in previous or name == MANIFEST or name.startswith(f".{_NEW}-"):
+            if name in skip or name.startswith(f".{_NEW}-"):
                 continue
             dest = self.stage / name
             if entry.is_dir() and not entry.is_symlink():
@@ -226,12 +235,19 @@ class FolderTransaction:
         _fsync_dir(self.target.parent)
 
     def _commit_in_place(self, files: dict) -> None:
-        previous = set(read_manifest(self.target) or {}) | self.owned
+        """Old manifest out first, the new entries moved in one by one, the new manifest last."""
+        previous = self._previous_entries()
         (self.target / MANIFEST).unlink(missing_ok=True)
-        for name in previous - set(files):
-            if "/" not in name and name not in (".", ".."):
-                (self.target / name).unlink(missing_ok=True)
-        for name in files:
+        new = {name.split("/")[0] for name in files}
+        for name in previous | new:
+            old = self.target / name
+            if name in (".", "..", "") or "/" in name or not (old.exists() or old.is_symlink()):
+                continue
+            if old.is_dir() and not old.is_symlink():
+                shutil.rmtree(old)
+            elif name not in new:
+                old.unlink()
+        for name in sorted(new):
             os.replace(self.stage / name, self.target / name)
         self._write_manifest(self.target, files)
 

@@ -243,7 +243,7 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     except OSError as exc:
         raise CarmRegError(f"{target}: could not write the results ({exc.strerror or exc}); the folder still "
                            "holds its previous content: free some space or choose another --out") from None
-    return {name: target / Path(path).name for name, path in paths.items()}
+    return {name: target / Path(path).relative_to(out) for name, path in paths.items()}
 
 
 def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None,

@@ -438,3 +438,21 @@ def test_a_mount_point_as_output_is_written_in_place_behind_its_manifest(tmp_pat
         pytest.skip("cannot mount a tmpfs here")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "['carmreg-manifest.json', 'mine.txt', 'v2.txt'] ['v2.txt']"
+
+
+def test_subfolders_written_by_a_transaction_are_part_of_it(tmp_path):
+    """A scene folder written beside the result is named in the manifest and replaced whole; an old one the
+    new result does not write is removed, never mixed in."""
+    out = tmp_path / "out"
+    with FolderTransaction(out) as stage:
+        (stage / "scene").mkdir()
+        (stage / "scene" / "a.mrml").write_text("1")
+        (stage / "scene" / "old.nrrd").write_text("1")
+    assert set(read_manifest(out)) == {"scene/a.mrml", "scene/old.nrrd"}
+    with FolderTransaction(out) as stage:
+        (stage / "scene").mkdir()
+        (stage / "scene" / "a.mrml").write_text("2")
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [MANIFEST, "scene", "scene/a.mrml"]
+    with FolderTransaction(out) as stage:
+        (stage / "result.json").write_text("3")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "result.json"]
