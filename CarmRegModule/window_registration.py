@@ -202,7 +202,8 @@ class WindowRegistration:
         fine = next((s for s in result.stages if s.name == "fine"), None)
         summary = (f"mPDE {fine.mpde_mm:.2f} mm   " if fine and fine.mpde_mm is not None else "") + \
                   f"magnification {result.magnification:.2f}" + ("" if result.ok else "   CHECK FAILED")
-        self.overlay_view.set_result(self.xray.pixels, self.xray.bone_dark, result.drr_line_integral,
+        bone_dark = result.appearance.bone_dark if result.appearance is not None else self.xray.bone_dark
+        self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary)
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)
@@ -304,12 +305,14 @@ class WindowRegistration:
         return changes
 
     def export_result(self, out_dir: str | Path) -> dict:
-        """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
+        """Write result.json, overlay.png, DRR, .tfm, figures and the 3D Slicer scene (slicer/CarmReg.mrml)
+        through the logic; returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
         clicks = self.shown_clicks()
         paths = _registration_api().CarmRegLogic().save_result(
-            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
+            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks,
+            ct=self.ct_volume, ct_landmarks=self.ct_store.to_landmarks())
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)

@@ -35,9 +35,9 @@ class OverlayView(ImageCanvas):
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "") -> None:
-        from carmreg.logic.image.prepare import field_mask
+        from carmreg.logic.image.field import field_mask
 
-        mask = field_mask(xray_pixels, bone_dark)  # the exposed (collimated) field, as the logic sees it
+        mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
         self._drr01 = (overlay_images.normalise(drr_line_integral, mask) if drr_line_integral is not None
                        else np.zeros_like(self._xray01))
