@@ -184,7 +184,7 @@ def level_offset(P: np.ndarray, centroids: dict, truth: dict) -> int | None:
 def score(mode: str, code: int, result: dict | None, truth: dict, given: list, centroids: dict) -> dict:
     """The run's answer against the truth (module docstring)."""
     row: dict = {"exit": code}
-    if result is None:
+    if result is None or "projection_matrix" not in result:
         return {**row, "status": "refused" if code == 2 else "failed", "answer_right": False}
     lc = result.get("level_check") or {}
     row.update(ok=result.get("ok"), status=lc.get("status"), margin=lc.get("margin"),
@@ -206,6 +206,19 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
 
 
 def run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
+    """One registration, scored; an error of the benchmark itself is recorded as a failed run."""
+    try:
+        return _run_one(job, cache_dir, timeout_s)
+    except Exception as exc:  # noqa: BLE001 - keep a long run going; the row says what broke
+        return {"case": job["case"], "half": half(job["case"]), "ct": job["ct_name"], "variant": job["variant"],
+                "mode": job["mode"], "seconds": float("nan"), "truth_labels": job["truth"]["clicked"],
+                "given": job["given"], "stderr": f"benchmark error: {type(exc).__name__}: {exc}"[:300],
+                "exit": None, "status": "failed", "answer_right": False, "polarity": None,
+                "polarity_right": None}
+
+
+def _run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
+    (job["out"] / "result.json").unlink(missing_ok=True)
     code, seconds, err = register(job["xray"], job["ct"], job["ct_lm"], job["clicks"], job["out"], job["detector"],
                                   cache_dir, timeout_s)
     result = None
