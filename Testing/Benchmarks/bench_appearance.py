@@ -274,7 +274,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         if len(vals):
             lines.append(f"| {v} | {len(vals)} | {np.median(vals):.2f} | {_pct(vals, 95)} | {vals.max():.2f} | "
                          f"{np.mean(vals < 5) * 100:.0f} % |")
-    secs = [r["seconds"] for r in sel if r["status"] not in ("refused",)]
+    secs = [r["seconds"] for r in sel if r["status"] != "refused" and np.isfinite(r["seconds"])]
     if secs:
         lines += ["", f"Time per run (whole process, database cached): median {np.median(secs):.1f} s, "
                   f"max {max(secs):.1f} s over {len(secs)} runs."]
@@ -291,7 +291,7 @@ def _row(variant: str, mode: str, runs: list[dict]) -> str:
     pol = [r for r in runs if r.get("polarity_right") is not None]
     assumed = any(r.get("polarity_source") == "assumed by the reader" for r in pol)
     pol_txt = f"{sum(r['polarity_right'] for r in pol)} / {len(pol)}{' (assumed)' if assumed else ''}" if pol else "-"
-    secs = [r["seconds"] for r in runs if r["status"] != "refused"]
+    secs = [r["seconds"] for r in runs if r["status"] != "refused" and np.isfinite(r["seconds"])]
     t = f"{np.median(secs):.1f} ({max(secs):.1f})" if secs else "-"
     return (f"| {variant} | {mode} | {n} | {right} | {'**' + str(conf_wrong) + '**' if conf_wrong else 0} | {amb} | "
             f"{contra} | {bad} | {pol_txt} | {t} |")
