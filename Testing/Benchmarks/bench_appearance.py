@@ -190,6 +190,9 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
     row.update(ok=result.get("ok"), status=lc.get("status"), margin=lc.get("margin"),
                assigned=lc.get("assigned_labels"), winner=lc.get("winner_labels"),
                warnings=result.get("warnings", [])[:4], appearance=result.get("appearance"))
+    stages = {st.get("name"): st for st in result.get("stages", [])}
+    row["stage_seconds"] = {k: st.get("seconds") for k, st in stages.items()}
+    row["db_from_cache"] = stages.get("database", {}).get("from_cache")
     P = np.asarray(result["projection_matrix"], float)
     clicked = set(truth["clicked"]) if mode != "none" else set()
     ev = evaluate(P, centroids, truth, clicked)
@@ -245,6 +248,8 @@ def _pct(values, q) -> str:
 def summarize(rows: list[dict], which: str = "report") -> str:
     """Markdown tables of the ``which`` half ('report', 'tune' or 'all')."""
     sel = [r for r in rows if which == "all" or r["half"] == which]
+    if not sel:
+        return f"**{which} half**: no runs yet.\n"
     cases = sorted({(r["case"], r["ct"]) for r in sel})
     by_ct = {ct: sum(c[1] == ct for c in cases) for ct in sorted({c[1] for c in cases})}
     variants = [v for v in app.VARIANTS if any(r["variant"] == v for r in sel)]
@@ -252,7 +257,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
     lines = [f"**{which} half**: {len(cases)} cases ({', '.join(f'{k} {v}' for k, v in by_ct.items())}), "
              f"{len(variants)} variants, modes {', '.join(modes)}; {len(sel)} runs of `carmreg register`.", ""]
     lines += ["| variant | mode | n | answer right | CONFIDENT and wrong | ambiguous | contradicted | refused / "
-              "failed | polarity right | s per case, median (max) |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "failed | polarity right | s per run, median (max) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for v in variants:
         for m in modes:
             runs = [r for r in sel if r["variant"] == v and r["mode"] == m]
@@ -266,6 +271,17 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                  f"{sum(r['status'] == s and not r['answer_right'] for r in runs)}" for s in STATUSES]
         bad = sum(r["status"] in ("refused", "failed") for r in runs)
         lines.append(f"| {v} | " + " | ".join(cells) + f" | {bad} |")
+    lines += ["", "Per CT (all variants): unnamed clicks named right; CONFIDENT and wrong in any mode.", "",
+              "| CT | unnamed right | CONFIDENT and wrong |", "|---|---|---|"]
+    for ct in by_ct:
+        unnamed = [r for r in sel if r["ct"] == ct and r["mode"] == "unnamed"]
+        bad = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in sel if r["ct"] == ct)
+        lines.append(f"| {ct} | {sum(r['answer_right'] for r in unnamed)} / {len(unnamed)} | {bad} |")
+    flipped = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("mirrored")]
+    if flipped:
+        lines += ["", f"Mirrored display: {sum(r['status'] == 'confident' for r in flipped)} of {len(flipped)} "
+                  "runs CONFIDENT (issue 11: a flipped image is detected and registered, or refused; never named "
+                  "with confidence)."]
     lines += ["", "Levels not clicked: pose-PDE, found vs true pose (detector mm), modes unnamed + named.", "",
               "| variant | levels | median | 95th pct | max | within 5 mm |", "|---|---|---|---|---|---|"]
     for v in variants + ["**all**"]:
@@ -274,11 +290,18 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         if len(vals):
             lines.append(f"| {v} | {len(vals)} | {np.median(vals):.2f} | {_pct(vals, 95)} | {vals.max():.2f} | "
                          f"{np.mean(vals < 5) * 100:.0f} % |")
-    secs = [r["seconds"] for r in sel if r["status"] != "refused" and np.isfinite(r["seconds"])]
+    secs = [r["seconds"] for r in sel if _timed(r)]
     if secs:
-        lines += ["", f"Time per run (whole process, database cached): median {np.median(secs):.1f} s, "
-                  f"max {max(secs):.1f} s over {len(secs)} runs."]
+        built = sum(r.get("db_from_cache") is False for r in sel)
+        lines += ["", f"Time per run (the whole `carmreg register` process, database cached; {built} runs that "
+                  f"built a database left out): median {np.median(secs):.1f} s, max {max(secs):.1f} s over "
+                  f"{len(secs)} runs, on a machine shared with other work."]
     return "\n".join(lines) + "\n"
+
+
+def _timed(r: dict) -> bool:
+    """A run whose time counts: it registered (not refused) with the database from the cache."""
+    return r["status"] != "refused" and np.isfinite(r["seconds"]) and r.get("db_from_cache") is not False
 
 
 def _row(variant: str, mode: str, runs: list[dict]) -> str:
@@ -291,7 +314,7 @@ def _row(variant: str, mode: str, runs: list[dict]) -> str:
     pol = [r for r in runs if r.get("polarity_right") is not None]
     assumed = any(r.get("polarity_source") == "assumed by the reader" for r in pol)
     pol_txt = f"{sum(r['polarity_right'] for r in pol)} / {len(pol)}{' (assumed)' if assumed else ''}" if pol else "-"
-    secs = [r["seconds"] for r in runs if r["status"] != "refused" and np.isfinite(r["seconds"])]
+    secs = [r["seconds"] for r in runs if _timed(r)]
     t = f"{np.median(secs):.1f} ({max(secs):.1f})" if secs else "-"
     return (f"| {variant} | {mode} | {n} | {right} | {'**' + str(conf_wrong) + '**' if conf_wrong else 0} | {amb} | "
             f"{contra} | {bad} | {pol_txt} | {t} |")
