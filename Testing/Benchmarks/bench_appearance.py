@@ -357,6 +357,35 @@ def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[
     return jobs
 
 
+def rescore(rows: list[dict], work: Path) -> list[dict]:
+    """Score every run again from its stored result.json and truth.json (after a change of the scoring); the
+    measured seconds, exit code and messages are kept. Runs whose files are gone are kept as they were."""
+    sample = sample_case()
+    landmarks = {"chest": Path(sample["ct_landmarks"]), "abdomen": CENTROIDS_PATH}
+    from carmreg.logic.io.landmarks import read_landmarks_3d
+
+    centroids = {ct: read_landmarks_3d(p).sorted().as_dict() for ct, p in landmarks.items() if p.is_file()}
+    out = []
+    for r in rows:
+        folder = work / f"case{r['case']:03d}" / r["variant"]
+        result_path, xrays = folder / f"out_{r['mode']}" / "result.json", sorted(folder.glob("xray.*"))
+        if not (folder / "truth.json").is_file() or not xrays or r["ct"] not in centroids:
+            out.append(r)
+            continue
+        truth = json.loads((folder / "truth.json").read_text())
+        result = json.loads(result_path.read_text()) if result_path.is_file() and r.get("exit") in (0, 1) else None
+        new = {k: r[k] for k in ("case", "half", "ct", "variant", "mode", "seconds", "truth_labels", "given",
+                                 "stderr")}
+        new.update(score(r["mode"], r.get("exit"), result, truth, r["given"], centroids[r["ct"]]))
+        detector = app.DETECTORS[app.VARIANTS[r["variant"]].detector]
+        decided, source = polarity_read(result, xrays[0], detector) if result else (None, "no result")
+        truth_pol = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
+        new.update(polarity=decided, polarity_source=source, polarity_truth=truth_pol,
+                   polarity_right=None if decided is None else decided == truth_pol)
+        out.append(new)
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=24)
@@ -371,6 +400,8 @@ def main(argv=None) -> int:
     parser.add_argument("--work", type=Path, default=Path("/tmp/carmreg-appearance"), help="case files")
     parser.add_argument("--timeout-s", type=float, default=900.0)
     parser.add_argument("--summary-only", action="store_true", help="rewrite the tables from the JSON")
+    parser.add_argument("--rescore", action="store_true",
+                        help="with --summary-only: score the runs again from the result.json files under --work")
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
     modes = [m for m in args.modes.split(",") if m]
@@ -385,6 +416,8 @@ def main(argv=None) -> int:
             "machine": f"{platform.processor() or platform.machine()}, 2 cores shared",
             "date": time.strftime("%Y-%m-%d"), "commit": _commit()}
     if args.summary_only:
+        if args.rescore:
+            rows = rescore(rows, args.work)
         write_results(args.out, rows, meta)
         print(summarize(rows, "report"))
         return 0
