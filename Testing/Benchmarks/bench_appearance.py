@@ -433,7 +433,7 @@ def main(argv=None) -> int:
                 print(f"case {row['case']:3d} {row['ct'][:5]} {row['variant']:<27} {row['mode']:<7} "
                       f"{str(row['status']):<12} {'right' if row['answer_right'] else 'WRONG'} "
                       f"pol {row['polarity']} {row['seconds']:.1f}s {row['stderr'][:80]}", flush=True)
-            write_results(args.out, rows, meta)
+                write_results(args.out, rows, meta)
     print(summarize(rows, "report"))
     return 0
 
