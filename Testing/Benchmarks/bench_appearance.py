@@ -324,7 +324,10 @@ def write_results(out: Path, rows: list[dict], meta: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / f"{RESULTS}.json", {"meta": meta, "runs": rows})
     notes = "\n".join(f"- `{v.name}`: {v.note}" for v in app.VARIANTS.values())
-    text = (f"# Appearance benchmark (issue 11, item 4)\n\n{meta['description']}\n\nVariants:\n{notes}\n\n"
+    run = (f"Method: CarmReg's code (Logic/, CarmRegModule/) as of commit {meta.get('commit') or '?'}; run "
+           f"`bench_appearance.py "
+           f"{meta.get('command', '')}`; {meta.get('machine', '')}, {meta.get('date', '')}.")
+    text = (f"# Appearance benchmark (issue 11, item 4)\n\n{meta['description']}\n\n{run}\n\nVariants:\n{notes}\n\n"
             + summarize(rows, "report") + "\n" + summarize(rows, "tune"))
     atomic_write_text(out / f"{RESULTS}.md", text)
 
@@ -411,10 +414,13 @@ def main(argv=None) -> int:
               f"{', '.join(app.VARIANTS)}; modes: {', '.join(MODES)}", file=sys.stderr)
         return 2
     path = args.out / f"{RESULTS}.json"
-    rows = json.loads(path.read_text())["runs"] if path.is_file() else []
-    meta = {"description": _description(),
-            "machine": f"{platform.processor() or platform.machine()}, 2 cores shared",
-            "date": time.strftime("%Y-%m-%d"), "commit": _commit()}
+    stored = json.loads(path.read_text()) if path.is_file() else {"runs": [], "meta": {}}
+    rows = stored["runs"]
+    meta = {"machine": f"{platform.processor() or platform.machine()}, 2 cores shared",
+            "date": time.strftime("%Y-%m-%d"), "commit": _commit(), "command": " ".join(sys.argv[1:])}
+    if args.summary_only:  # the run's own facts stay
+        meta.update({k: v for k, v in stored.get("meta", {}).items() if k in meta})
+    meta["description"] = _description()
     if args.summary_only:
         if args.rescore:
             rows = rescore(rows, args.work)
@@ -451,8 +457,10 @@ def _description() -> str:
 
 
 def _commit() -> str:
+    """The last commit that changed the method's code (Logic/, CarmRegModule/)."""
     try:
-        return subprocess.run(["git", "-C", str(Path(__file__).resolve().parent), "rev-parse", "--short", "HEAD"],
+        root = Path(__file__).resolve().parents[2]
+        return subprocess.run(["git", "-C", str(root), "log", "-1", "--format=%h", "--", "Logic", "CarmRegModule"],
                               capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return ""
