@@ -46,7 +46,7 @@ from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load
 
 from carmreg.logic.geometry.camera import project  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
-from carmreg.logic.registration.levels import shifted_labels  # noqa: E402
+from carmreg.logic.registration.labellings import shifted_labels  # noqa: E402
 from carmreg.logic.resources import sample_case  # noqa: E402
 from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
 
