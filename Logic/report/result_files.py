@@ -18,6 +18,7 @@ Files (all written atomically into ``out_dir``):
   ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step along columns and rows).
 - ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).
 - ``convergence.png`` (paper Fig. 9-10) and ``similarity_maps.png`` (paper Fig. 6).
+- ``report.pdf``: the one-page report (``report.page``).
 """
 
 from __future__ import annotations
@@ -247,4 +248,6 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     paths["convergence"] = atomic_write_bytes(out / "convergence.png", convergence_figure(result))
     if result.similarity_maps:
         paths["similarity"] = atomic_write_bytes(out / "similarity_maps.png", similarity_figure(result))
+    from carmreg.logic.report.page import write_report_pdf
+    paths["report"] = write_report_pdf(out / "report.pdf", result, xray_pixels, clicked, bone_dark)
     return paths
