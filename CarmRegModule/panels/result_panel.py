@@ -14,8 +14,10 @@ into the clicks (one undo step; the window does it).
 
 from __future__ import annotations
 
+import html
+
 import numpy as np
-from qtpy import QtCore, QtWidgets
+from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.geometry.camera import POSE_NAMES
 
@@ -83,6 +85,12 @@ class ResultPanel(QtWidgets.QWidget):
         heading = QtWidgets.QLabel("Check the overlay")
         heading.setObjectName("heading")
         layout.addWidget(heading)
+        self.banner = QtWidgets.QLabel()
+        self.banner.setObjectName("level_banner")
+        self.banner.setWordWrap(True)
+        self.banner.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.banner.setVisible(False)
+        layout.addWidget(self.banner)
 
         box = QtWidgets.QGroupBox("Display")
         form = QtWidgets.QFormLayout(box)
@@ -233,8 +241,14 @@ class ResultPanel(QtWidgets.QWidget):
                     item.setFont(font)
                 self.hypotheses_table.setItem(row, col, item)
 
-    def set_accept_enabled(self, enabled: bool, reason: str = "") -> None:
+    def set_accept_enabled(self, enabled: bool, reason: str = "", text: str | None = None) -> None:
+        """Enable "Accept assigned names"; ``text`` relabels it (contradicted names: "Use the names the image
+        supports: ...")."""
         self.accept_button.setEnabled(bool(enabled))
+        self.accept_button.setText(text or "Accept assigned names")
+        self.accept_button.setObjectName("danger" if text else "")
+        self.accept_button.setStyleSheet("QPushButton { background: #c92a2a; color: white; font-weight: bold; }"
+                                         if text and enabled else "")
         self.accept_button.setToolTip(reason or "Name the X-ray clicks as assigned by the level identification "
                                                 "(Ctrl+Z undoes)")
 
@@ -242,8 +256,26 @@ class ResultPanel(QtWidgets.QWidget):
         self.overlay.show_names = on
         self.overlay.refresh_markers()
 
+    def set_banner(self, banner: tuple[str, str, str] | None) -> None:
+        """The level answer (headline, reason, colour) as a coloured block at the top; None hides it."""
+        self.banner_colour = banner[2] if banner else None
+        if banner is None:
+            self.banner.setVisible(False)
+            return
+        headline, reason, colour = banner
+        ink = "black" if QtGui.QColor(colour).lightnessF() > 0.6 else "white"
+        self.banner.setStyleSheet(f"QLabel#level_banner {{ background: {colour}; color: {ink}; padding: 6px; "
+                                  "border-radius: 3px; }")
+        self.banner.setText(f"<b style='font-size:12pt'>{html.escape(headline)}</b><br>{html.escape(reason)}")
+        self.banner.setVisible(True)
+
     def set_result(self, result, click_names: list[str] | None = None) -> None:
         has = result is not None
+        self.set_banner(None)
+        if has:
+            from carmreg.logic.report.page import answer_banner
+
+            self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok), result.warnings))
         self.export_button.setEnabled(has)
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))

@@ -140,6 +140,7 @@ class IdentifyContext:
     fine: FineParameters                    # anchored landmark search (Algorithm 4)
     refine: RefineParameters                # the wide coarse image refinement that scores a labelling
     should_stop: object = None
+    on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
 
 
 # ----------------------------------------------------------------------------------------------- labellings
@@ -301,6 +302,8 @@ def identify_levels(ctx: IdentifyContext, ct: Landmarks3D, clicks: Landmarks2D,
     def refine(i: int) -> None:
         h = hypotheses[i]
         if not h.refined:
+            if ctx.on_labelling is not None:
+                ctx.on_labelling(list(h.labels))
             hypotheses[i] = register_labelling(ctx, np.array([ct_map[lb] for lb in h.labels]), uv, h)
 
     if given_index is None:  # the most plausible magnifications first (source depth nearest the nominal)
@@ -383,6 +386,8 @@ def identify_from_image(ctx: IdentifyContext, ct: Landmarks3D, score_map: np.nda
     empty_points, empty_uv = np.zeros((0, 3)), np.zeros((0, 2))  # no clicks: no landmark term
 
     def fit(start: np.ndarray, shift: int) -> Hypothesis:
+        if ctx.on_labelling is not None:
+            ctx.on_labelling([])
         r = intensity_refine(ctx.level, ctx.geometry, start, ctx.xray_line_integral, ctx.mask, empty_points,
                              empty_uv, ctx.refine, should_stop=ctx.should_stop)
         return Hypothesis([], shift, r.pose, r.objective_end, r.similarity_end, float("nan"), True, start)

@@ -308,7 +308,8 @@ class CarmRegLogic:
             return {"enabled": False}
         ctx = IdentifyContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
                               state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
-                              p.fine, p.refine_coarse, self._check_cancel)
+                              p.fine, p.refine_coarse, self._check_cancel,
+                              self._labelling_progress(len(clicks.labels), clicks.named, p.identify))
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
@@ -323,6 +324,22 @@ class CarmRegLogic:
         if ident.status == "ambiguous":
             state.warnings.append(ident.message)
         return {"enabled": True, **ident.as_dict()}
+
+    def _labelling_progress(self, n_clicks: int, named: bool, p: IdentifyParameters):
+        """The levels stage's progress hook: "labelling 3 of 7: T10, T11, T12" before each labelling is
+        registered. 7 = the usual count: the first candidates and the winner's two neighbours (unnamed), the
+        given names and one level up and down (named), the map's peaks and one challenge (no clicks); raised
+        when more are needed."""
+        expected = p.image_starts + 2 if n_clicks == 0 else (3 if named else p.candidates + 2)
+        count = {"done": 0, "expected": expected}
+
+        def on_labelling(labels: list) -> None:
+            count["done"] += 1
+            count["expected"] = max(count["expected"], count["done"])
+            done, total = count["done"], count["expected"]
+            what = ", ".join(labels) if labels else "a pose from the image"
+            self._report("levels", min((done - 1) / total, 0.99), f"labelling {done} of {total}: {what}")
+        return on_labelling
 
     def _refine(self, state: RegistrationState) -> dict:
         p = state.parameters

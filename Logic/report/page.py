@@ -77,6 +77,18 @@ def level_answer(level_check: dict | None, ok: bool = True) -> tuple[str, str, s
     return headline, reason.strip(), colour
 
 
+def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
+    """(headline, reason, colour) to show above a result: the level answer, or "CHECKS FAILED" with the
+    failed checks when the result is not ok for another reason; None when there is nothing to say (level check
+    off and every check passed)."""
+    if not level_check and ok:
+        return None
+    headline, reason, colour = level_answer(level_check, ok)
+    if not ok and (level_check or {}).get("status") != "contradicted":
+        headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
+    return headline, reason, colour
+
+
 # ----------------------------------------------------------------------------------------------- overlay
 
 def _normalise(image: np.ndarray, mask: np.ndarray | None, low_pct: float = 1.0, high_pct: float = 99.5

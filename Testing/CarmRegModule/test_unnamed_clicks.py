@@ -303,7 +303,8 @@ def test_status_colours_and_image_only_mode_in_the_result_panel(xray_window):
     assert rp.level_status_label.text() == "CONTRADICTED" and rp.level_status_color == "#ff8787"
     assert "CONTRADICTED" in rp.level_message_label.text()
     assert sorted(_texts(win.xray_view).values()) == [f"?{k} {ARROW} T1{k - 1}" for k in (1, 2, 3)]
-    assert win.accept_assigned_names(ask=False) and store.labels() == ["T10", "T11", "T12"]
+    assert win.accept_assigned_names(ask=False, register=False) and store.labels() == ["T10", "T11", "T12"]
+    assert win.result_stale  # the names changed: this result was registered with the others
     store.move(store.find("T10").id, [141.0, 61.0])
     assert win.result_stale and win.xray_view.assigned == {}
     from carmreg.logic.errors import RegistrationError
