@@ -266,6 +266,7 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self.registration_panel.reset_requested.connect(self.reset_registration)
         self.result_panel.export_requested.connect(self._action_export_result)
         self.result_panel.overlay_png_requested.connect(self._action_overlay_png)
+        self.result_panel.report_requested.connect(self._action_report_pdf)
         self.result_panel.accept_names_requested.connect(self._action_accept_names)
         self.xray_store.naming_changed.connect(self.act_name_levels.setChecked)
         self.step_tabs.currentChanged.connect(self._step_changed)

@@ -364,13 +364,33 @@ class WindowRegistration:
         """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
+        if getattr(self.result, "restored", False):
+            raise RegistrationError("this result was reopened from a session without its DRR: register again "
+                                    "(step 4) to export it")
         clicks = self.shown_clicks()
-        paths = _registration_api().CarmRegLogic().save_result(
+        paths = dict(_registration_api().CarmRegLogic().save_result(
             self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
+            or {})
+        paths["report"] = self.export_report(Path(out_dir) / "report.pdf")  # the page as on screen
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)
-        return dict(paths or {})
+        return paths
+
+    def export_report(self, path: str | Path) -> Path:
+        """The one-page PDF report (``report.page``) with the overlay exactly as the view composites it now
+        (mode, blend) and the clicks as shown."""
+        from carmreg.logic.report.page import write_report_pdf
+
+        if self.result is None:
+            raise RegistrationError("there is no result to report yet: run the registration (step 4)")
+        if getattr(self.result, "restored", False):
+            raise RegistrationError("this result was reopened from a session without its DRR: register again "
+                                    "(step 4) to write its report")
+        path = write_report_pdf(path, self.result, self.xray.pixels, self.shown_clicks(), self.xray.bone_dark,
+                                composite_rgb=self.overlay_view.composite_rgb())
+        self.statusBar().showMessage(f"Report written to {path}", 8000)
+        return path
 
 
 

@@ -87,7 +87,10 @@ class LandmarkPanel(QtWidgets.QWidget):
         self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
-        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        # the Level cells are combo boxes (cell widgets), which ResizeToContents ignores: a fixed width that
+        # fits the longest entry, so T10, T11, T12 never read "T1" after the table fills from empty
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Fixed)
+        self.table.setColumnWidth(0, level_column_width())
         header.setSectionResizeMode(1, QtWidgets.QHeaderView.ResizeMode.Stretch)
         for column in range(2, len(headers)):
             header.setSectionResizeMode(column, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
@@ -221,3 +224,14 @@ class LandmarkPanel(QtWidgets.QWidget):
     def _clear(self) -> None:
         if len(self.store):
             self.store.replace_all([], [], text="Clear landmarks")
+
+
+def level_column_width() -> int:
+    """Width (px) of the Level column: a combo box holding every entry it can show (``?12``, the unnamed
+    entry, every level name), plus a margin."""
+    probe = QtWidgets.QComboBox()
+    probe.addItems(["?12", UNNAMED] + LEVEL_NAMES)
+    probe.setSizeAdjustPolicy(QtWidgets.QComboBox.SizeAdjustPolicy.AdjustToContents)
+    width = probe.sizeHint().width() + 6
+    probe.deleteLater()
+    return width

@@ -74,6 +74,7 @@ class ResultPanel(QtWidgets.QWidget):
 
     export_requested = QtCore.Signal()
     overlay_png_requested = QtCore.Signal()
+    report_requested = QtCore.Signal()
     accept_names_requested = QtCore.Signal()
 
     def __init__(self, overlay_view, parent=None):
@@ -140,14 +141,20 @@ class ResultPanel(QtWidgets.QWidget):
         self.pose_label.setWordWrap(True)
         layout.addWidget(self.pose_label)
         row = QtWidgets.QHBoxLayout()
-        self.export_button = QtWidgets.QPushButton("Export result folder...")
+        self.export_button = QtWidgets.QPushButton("Result folder...")
         self.export_button.setToolTip("result.json, overlay.png, DRR (PNG + NRRD), carm.tfm, convergence plot")
         self.export_button.clicked.connect(self.export_requested)
-        self.png_button = QtWidgets.QPushButton("Save overlay view PNG...")
+        self.png_button = QtWidgets.QPushButton("Overlay PNG...")
+        self.png_button.setToolTip("The overlay view as a PNG image")
         self.png_button.clicked.connect(self.overlay_png_requested)
+        self.report_button = QtWidgets.QPushButton("Report PDF...")
+        self.report_button.setToolTip("One page to keep: the overlay as shown, the level answer, named levels, "
+                                      "pose, magnification, inputs and versions")
+        self.report_button.clicked.connect(self.report_requested)
+        row.addWidget(self.report_button)
         row.addWidget(self.export_button)
         row.addWidget(self.png_button)
-        layout.addLayout(row)
+        layout.insertLayout(2, row)  # under the heading and the level banner: never below the fold
         self.set_result(None)
 
     def _level_box(self) -> QtWidgets.QGroupBox:
@@ -276,7 +283,11 @@ class ResultPanel(QtWidgets.QWidget):
             from carmreg.logic.report.page import answer_banner
 
             self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok), result.warnings))
-        self.export_button.setEnabled(has)
+        restored = has and getattr(result, "restored", False)
+        for button in (self.export_button, self.report_button):
+            button.setEnabled(has and not restored)
+            button.setToolTip(button.toolTip().split(" (reopened")[0] + (
+                " (reopened from a session: register again to export)" if restored else ""))
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))
         self.set_level_check(getattr(result, "level_check", None) if has else None, click_names)

@@ -122,7 +122,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
         self.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.setVerticalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorUnderMouse)
+        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.NoAnchor)
         self.setResizeAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorViewCenter)
         self.setRenderHints(QtGui.QPainter.RenderHint.Antialiasing | QtGui.QPainter.RenderHint.SmoothPixmapTransform)
         self.setViewportUpdateMode(QtWidgets.QGraphicsView.ViewportUpdateMode.FullViewportUpdate)
@@ -221,12 +221,25 @@ class ImageCanvas(QtWidgets.QGraphicsView):
             self.fit()
 
     def zoom(self, factor: float, anchor: QtCore.QPoint | None = None) -> None:
+        """Scale by ``factor`` keeping the scene point under ``anchor`` (viewport px; default: the view's
+        centre) where it is on screen. Done explicitly, not with Qt's AnchorUnderMouse: that anchor uses the
+        last mouse position Qt saw, which is stale in a view that handles mouse moves itself."""
         self._auto_fit = False
-        old_anchor = self.transformationAnchor()
         if anchor is None:
-            self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorViewCenter)
+            anchor = self.viewport().rect().center()
+        before = self.mapToScene(anchor)
+        old_anchor = self.transformationAnchor()
+        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.NoAnchor)
         self.scale(factor, factor)
         self.setTransformationAnchor(old_anchor)
+        self.keep_scene_point_at(before, anchor)
+
+    def keep_scene_point_at(self, scene: QtCore.QPointF, anchor: QtCore.QPoint) -> None:
+        """Scroll so that ``scene`` is drawn at viewport position ``anchor``."""
+        after = self.mapFromScene(scene)
+        h, v = self.horizontalScrollBar(), self.verticalScrollBar()
+        h.setValue(h.value() + after.x() - anchor.x())
+        v.setValue(v.value() + after.y() - anchor.y())
 
     def zoom_level(self) -> float:
         return float(self.transform().m11())
