@@ -24,6 +24,7 @@ STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding th
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",
                 "fine": "Fitting the clicked centres", "refine": "Refining on the image",
                 "final_drr": "Rendering the final DRR"}
+STAGES_ORDER = tuple(STAGE_TITLES)
 STAGE_NUMBERS = {"database": "1a", "spatial": "1b", "levels": "1c", "depth": "2", "fine": "3", "refine": "4",
                  "final_drr": ""}  # the method paper's stage numbers, kept in the table for the engineer
 # Typical seconds per stage on this project's 2-core CPU (sample case, unnamed clicks, database cached; the

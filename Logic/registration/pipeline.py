@@ -309,7 +309,8 @@ class CarmRegLogic:
         ctx = IdentifyContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
                               state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
                               p.fine, p.refine_coarse, self._check_cancel,
-                              self._labelling_progress(len(clicks.labels), clicks.named, p.identify))
+                              self._labelling_progress(len(clicks.labels), clicks.named,
+                                                       len(ct_level_names(state.ct_landmarks)), p.identify))
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
@@ -325,12 +326,13 @@ class CarmRegLogic:
             state.warnings.append(ident.message)
         return {"enabled": True, **ident.as_dict()}
 
-    def _labelling_progress(self, n_clicks: int, named: bool, p: IdentifyParameters):
+    def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
         """The levels stage's progress hook: "labelling 3 of 7: T10, T11, T12" before each labelling is
-        registered. 7 = the usual count: the first candidates and the winner's two neighbours (unnamed), the
-        given names and one level up and down (named), the map's peaks and one challenge (no clicks); raised
-        when more are needed."""
-        expected = p.image_starts + 2 if n_clicks == 0 else (3 if named else p.candidates + 2)
+        registered. 7 = the usual count: the first candidates and the winner's two neighbours (unnamed; at most
+        the runs of consecutive CT levels), the given names and one level up and down (named), the map's peaks
+        and one challenge (no clicks); raised when more are needed."""
+        runs = max(n_ct_levels - n_clicks + 1, 1)
+        expected = p.image_starts + 2 if n_clicks == 0 else min(3 if named else p.candidates + 2, runs)
         count = {"done": 0, "expected": expected}
 
         def on_labelling(labels: list) -> None:
