@@ -121,7 +121,9 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         result_page.setObjectName("result_page")
         result_page.addWidget(_framed(self.overlay_view))
         result_page.addWidget(_framed(self.view3d_result))
-        result_page.setSizes([800, 560])
+        result_page.setStretchFactor(0, 3)  # the overlay gets most of the room, the 3D view keeps a fair share
+        result_page.setStretchFactor(1, 2)
+        result_page.setSizes([600, 400])
         self.ct_page, self.result_page = ct_page, result_page
         self.view_tabs = QtWidgets.QTabWidget()
         self.view_tabs.setDocumentMode(True)

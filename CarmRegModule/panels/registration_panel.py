@@ -284,6 +284,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.plot.set_convergence(result.convergence or [])
         self.progress.setValue(1000)
         self.progress.setFormat("done")
+        self.stage_label.setText(f"finished in {sum(s.seconds for s in result.stages):.1f} s (stage time)")
         from carmreg.logic.report.page import drawn_mpde_mm
 
         total = sum(s.seconds for s in result.stages)

@@ -166,6 +166,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.level_status_label.setObjectName("level_status")
         self.level_message_label = QtWidgets.QLabel("")
         self.level_margin_label = QtWidgets.QLabel("-")
+        self.level_margin_label.setWordWrap(True)
         self.level_runner_up_label = QtWidgets.QLabel("-")
         self.level_assigned_label = QtWidgets.QLabel("-")
         for label in (self.level_mode_label, self.level_message_label, self.level_assigned_label,
@@ -181,7 +182,8 @@ class ResultPanel(QtWidgets.QWidget):
         form.addRow("Margin", self.level_margin_label)
         form.addRow("Runner-up", self.level_runner_up_label)
         self.hypotheses_table = QtWidgets.QTableWidget(0, 4)
-        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score", "Similarity", "mPDE (mm)"])
+        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score (lower = better)", "Similarity",
+                                                         "mPDE (mm)"])
         self.hypotheses_table.verticalHeader().setVisible(False)
         self.hypotheses_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.hypotheses_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.NoSelection)
@@ -225,7 +227,13 @@ class ResultPanel(QtWidgets.QWidget):
             self.level_assigned_label.setText(", ".join(labels))
         else:  # no clicks: the levels the found pose puts in the image
             self.level_assigned_label.setText(f"in the image: {', '.join(visible)}" if visible else "-")
-        self.level_margin_label.setText(format_margin(check.get("margin")) if check else "-")
+        margin = format_margin(check.get("margin")) if check else "-"
+        if check and margin.startswith(("+", "-")) and len(margin) > 1:
+            from carmreg.logic.registration.levels import IdentifyParameters
+
+            t = IdentifyParameters().margin
+            margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
+        self.level_margin_label.setText(margin)
         runner_up = check.get("runner_up_labels")
         prefers = status == "contradicted" and mode in ("named", "partly_named")
         self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)

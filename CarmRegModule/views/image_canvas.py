@@ -56,8 +56,14 @@ class MarkerItem(QtWidgets.QGraphicsItem):
         self.setOpacity(spec.alpha)
         self.update()
 
+    show_text = True  # False when the view's decluttering hides this label (it would overprint another)
+
     def boundingRect(self) -> QtCore.QRectF:
         return QtCore.QRectF(-14, -14, 200, 30)
+
+    def label_rect(self) -> QtCore.QRectF:
+        """The label's box relative to the glyph centre, in screen px (an estimate from the text length)."""
+        return QtCore.QRectF(12, -8, 8.5 * len(self.spec.text) + 4, 17) if self.spec.text else QtCore.QRectF()
 
     def paint(self, painter: QtGui.QPainter, option, widget=None) -> None:
         spec = self.spec
@@ -73,7 +79,7 @@ class MarkerItem(QtWidgets.QGraphicsItem):
             painter.setPen(QtCore.Qt.PenStyle.NoPen)
             painter.setBrush(color)
             painter.drawEllipse(QtCore.QPointF(0, 0), 3.0, 3.0)
-        if spec.text:
+        if spec.text and self.show_text:
             self._label(painter, spec.text, color)
 
     @staticmethod
@@ -282,6 +288,30 @@ class ImageCanvas(QtWidgets.QGraphicsView):
                 self.scene().addItem(item)
         self.viewport().update()
 
+    def declutter(self) -> list[object]:
+        """Hide the labels that would overprint a label already placed on screen, the most important first
+        (selected, then in-plane, then fitted/clicked order); returns the keys whose label is hidden. Their
+        glyphs stay, and hovering or zooming in shows the name again."""
+        placed: list[QtCore.QRectF] = []
+        hidden = []
+        order = sorted(self._markers.items(), key=lambda kv: (kv[1].spec.style != "selected", -kv[1].spec.alpha))
+        for key, item in order:
+            box = item.label_rect()
+            if box.isEmpty():
+                continue
+            centre = self.mapFromScene(QtCore.QPointF(item.spec.x, item.spec.y))
+            box = box.translated(centre.x(), centre.y())
+            item.show_text = not any(box.intersects(other) for other in placed)
+            if item.show_text:
+                placed.append(box)
+            else:
+                hidden.append(key)
+        return hidden
+
+    def paintEvent(self, event) -> None:
+        self.declutter()
+        super().paintEvent(event)
+
     def markers(self) -> dict[object, MarkerSpec]:
         return {k: item.spec for k, item in self._markers.items()}
 
@@ -479,6 +509,12 @@ class ImageCanvas(QtWidgets.QGraphicsView):
             font.setBold(bold)
             font.setPointSizeF(11 if bold else 9.5)
             painter.setFont(font)
+            if not bold:  # a dark box keeps the text legible over burnt-in image text
+                box = painter.boundingRect(inner, places[where], text).adjusted(-3, -1, 3, 1)
+                painter.setPen(QtCore.Qt.PenStyle.NoPen)
+                painter.setBrush(QtGui.QColor(0, 0, 0, 170))
+                painter.drawRoundedRect(box, 3, 3)
+                painter.setBrush(QtCore.Qt.BrushStyle.NoBrush)
             painter.setPen(QtGui.QColor(0, 0, 0))
             painter.drawText(inner.translated(1, 1), places[where], text)
             painter.setPen(QtGui.QColor(255, 214, 102) if bold else QtGui.QColor(220, 224, 228))

@@ -19,6 +19,8 @@ from .. import overlay_images
 from ..qt_common import CHECK_COLOR, CLICK_COLOR, FITTED_COLOR, STATUS_COLORS
 from .image_canvas import ImageCanvas, MarkerSpec
 
+LEGEND_HEIGHT_PX = 62.0
+
 
 class OverlayView(ImageCanvas):
     """Blend / checkerboard / edge composite with projected, named centroids."""
@@ -131,12 +133,19 @@ class OverlayView(ImageCanvas):
             return QtCore.QRectF()
         return QtCore.QRectF(view.left(), view.top(), view.width(), self._banner_height(view.width()))
 
-    def _banner_height(self, width: float) -> float:
-        metrics = QtGui.QFontMetricsF(self._banner_fonts()[1])
-        reason = self.banner[1] if self.banner else ""
+    def _banner_parts(self, width: float) -> tuple[float, float]:
+        """Heights (px) of the wrapped headline and reason in a banner ``width`` px wide."""
+        head, body = self._banner_fonts()
         flags = int(QtCore.Qt.TextFlag.TextWordWrap)
-        lines = metrics.boundingRect(QtCore.QRectF(0, 0, width - 20, 1000), flags, reason).height() if reason else 0
-        return 30.0 + lines + 6.0
+        box = QtCore.QRectF(0, 0, max(width - 20, 50), 1000)
+        headline, reason = (self.banner[0], self.banner[1]) if self.banner else ("", "")
+        h1 = QtGui.QFontMetricsF(head).boundingRect(box, flags, headline).height()
+        h2 = QtGui.QFontMetricsF(body).boundingRect(box, flags, reason).height() if reason else 0.0
+        return h1, h2
+
+    def _banner_height(self, width: float) -> float:
+        h1, h2 = self._banner_parts(width)
+        return 8.0 + h1 + (4.0 + h2 if h2 else 0.0) + 6.0
 
     def _banner_fonts(self) -> tuple[QtGui.QFont, QtGui.QFont]:
         head = QtGui.QFont(self.font())
@@ -159,15 +168,32 @@ class OverlayView(ImageCanvas):
         head, body = self._banner_fonts()
         painter.setPen(ink)
         painter.setFont(head)
-        text_rect = rect.adjusted(10, 4, -10, -4)
-        painter.drawText(text_rect, int(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop),
-                         QtGui.QFontMetricsF(head).elidedText(headline, QtCore.Qt.TextElideMode.ElideRight,
-                                                              text_rect.width()))
+        text_rect = rect.adjusted(10, 8, -10, -6)
+        wrap = int(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop
+                   | QtCore.Qt.TextFlag.TextWordWrap)
+        painter.drawText(text_rect, wrap, headline)
         if reason:
             painter.setFont(body)
-            painter.drawText(text_rect.adjusted(0, 26, 0, 0), int(QtCore.Qt.AlignmentFlag.AlignLeft
-                                                                  | QtCore.Qt.TextFlag.TextWordWrap), reason)
+            painter.drawText(text_rect.adjusted(0, self._banner_parts(rect.width())[0] + 4, 0, 0), wrap, reason)
         return rect.height()
+
+    def fit(self) -> None:
+        """Show the whole image between the banner and header lines above and the legend below (they never
+        cover the image)."""
+        super().fit()
+        rect = self.image_rect()
+        view_h = float(self.viewport().height())
+        top = self._banner_height(self.viewport().width()) if self.banner is not None else 0.0
+        top += 18.0 * (2 + any(not lv.get("in_image", True) for lv in self.levels)) if self.levels else 0.0
+        bottom = LEGEND_HEIGHT_PX + 8.0 if self._image is not None else 0.0
+        free = view_h - top - bottom
+        if rect.isEmpty() or top + bottom <= 0 or free <= 50:
+            return
+        target = rect.adjusted(0, -rect.height() * top / free, 0, rect.height() * bottom / free)
+        self.resetTransform()
+        self.fitInView(target, QtCore.Qt.AspectRatioMode.KeepAspectRatio)
+        self.centerOn(target.center())
+        self._auto_fit = True
 
     def draw_annotations(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> None:
         top = self.draw_banner(painter, view)
@@ -181,7 +207,7 @@ class OverlayView(ImageCanvas):
         font.setBold(False)
         font.setPointSizeF(9.0)
         painter.setFont(font)
-        box = QtCore.QRectF(view.left() + 8, view.bottom() - 70, 230, 62)
+        box = QtCore.QRectF(view.left() + 8, view.bottom() - LEGEND_HEIGHT_PX - 8, 230, LEGEND_HEIGHT_PX)
         painter.setPen(QtCore.Qt.PenStyle.NoPen)
         painter.setBrush(QtGui.QColor(0, 0, 0, 150))
         painter.drawRoundedRect(box, 4, 4)

@@ -260,7 +260,7 @@ def test_assigned_names_show_on_the_clicks_and_can_be_accepted_and_undone(xray_w
     assert "partly named" in rp.level_mode_label.text()
     assert rp.level_status_label.text() == "AMBIGUOUS" and rp.level_status_color == "#ffa94d"
     assert "AMBIGUOUS" in rp.level_message_label.text() and rp.level_message_label.isVisibleTo(rp)
-    assert rp.level_margin_label.text() == "+0.012"
+    assert rp.level_margin_label.text().startswith("+0.012  (runner-up score minus this one: confident from +0.020")
     assert rp.level_runner_up_label.text() == "T11, T12, L1"
     assert rp.level_assigned_label.text() == f"T11, ?1 {ARROW} T10, ?2 {ARROW} T12"
     # labellings best first: the winner (bold), the runner-up, then the others
