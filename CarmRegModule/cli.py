@@ -97,9 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--level", help="level the C-arm is centred near (default: random among labelled)")
     sim.add_argument("--size-px", type=int, default=None, help="detector columns = rows")
 
-    gui = sub.add_parser("gui", help="open the desktop application", description="Open the CarmReg window, "
-                         "empty, with a saved session, with the sample case or with your files. Needs a display "
-                         "and the system libraries of scripts/install-system-deps.sh (Debian/Ubuntu).")
+    gui = sub.add_parser("gui", help="open the desktop application",
+                         formatter_class=argparse.RawDescriptionHelpFormatter,
+                         description="Open the CarmReg window: empty (offers to recover a crashed session), with a\n"
+                         "saved session, with the sample case or with your files.\n\n"
+                         "Needs a display and, on a fresh Debian/Ubuntu machine, the system libraries of\n"
+                         "  scripts/install-system-deps.sh\n"
+                         "Without a display it exits with code 2 (carmreg screenshot works without one).")
     _window_inputs(gui)
 
     shot = sub.add_parser("screenshot", help="export screenshots of the application offscreen",

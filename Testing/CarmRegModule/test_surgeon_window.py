@@ -313,3 +313,54 @@ def test_nothing_overprints_at_common_screen_sizes(xray_window, size):
         assert 0 <= top_left.y() and top_left.y() + button.height() <= scroll.height(), button.text()
     assert win.overlay_view.width() >= 0.35 * size[0]
     assert win.view3d_result.width() >= 0.15 * size[0]
+
+
+# ------------------------------------------------------------------------------------------- 10. front doors
+
+def test_gui_help_documents_every_option_including_session(capsys):
+    from carmreg.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["gui", "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    for option in ("--session FILE", "--sample", "--ct CT", "--xray XRAY", "--ct-landmarks FILE",
+                   "--xray-landmarks FILE", "install-system-deps.sh"):
+        assert option in text, option
+
+
+def test_gui_without_a_display_exits_2_with_one_line_and_leaves_no_autosave(tmp_path):
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
+    env["CARMREG_STATE_DIR"] = str(tmp_path / "state")
+    done = subprocess.run([sys.executable, "-m", "carmreg.cli", "gui", "--sample"], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("carmreg: error: no display"), done.stderr
+    assert not (tmp_path / "state").exists() or not any((tmp_path / "state").iterdir())
+
+
+def test_gui_with_a_missing_session_file_exits_2(tmp_path, capsys):
+    from carmreg.cli import main
+
+    assert main(["gui", "--session", str(tmp_path / "nope.carmreg.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope.carmreg.json" in err[0] and "not found" in err[0]
+
+
+def test_screenshots_of_your_own_files_not_only_the_sample(qapp, synthetic_case, tmp_path):
+    from PIL import Image
+
+    from carmreg.app import export_screenshots
+
+    inputs = {"ct": synthetic_case.ct_path, "xray": synthetic_case.xray_path,
+              "ct_landmarks": synthetic_case.ct_landmarks_path, "xray_landmarks": synthetic_case.xray_landmarks_path}
+    paths = export_screenshots(tmp_path, sample=False, views=("xray", "window_ct"), register=False,
+                               size=(1280, 720), inputs=inputs)
+    assert [p.name for p in paths] == ["carmreg_xray.png", "carmreg_window_ct.png"]
+    assert Image.open(paths[1]).size == (1280, 720)
+    xray = np.asarray(Image.open(paths[0]).convert("L"), float)
+    assert xray.std() > 10  # the synthetic X-ray, not an empty view
