@@ -430,11 +430,25 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
 
     def _landmarks_changed(self) -> None:
         self._points3d_timer.start()
+        self._check_spine_order()
         self._inputs_changed(reset_overlay=False)
         if self.result is not None:
             self.overlay_view.clicks = self.shown_clicks()
             self.overlay_view.refresh_markers()
         self._update_accept_names()
+
+    def _check_spine_order(self) -> None:
+        """Warn (not refuse) when the named points break the spine's order or spacing
+        (``io.landmarks.spine_order_warnings``): an "L2" placed above L1, a point in the wrong organ."""
+        from carmreg.logic.io.landmarks import spine_order_warnings
+
+        ct = self.ct_store.to_landmarks()
+        ct_notes = spine_order_warnings(ct) if len(ct.labels) >= 2 else []
+        xray = self.xray_store.to_landmarks()
+        named = [lb for lb in xray.labels if lb]
+        both = spine_order_warnings(ct, xray) if len(named) >= 2 and len(ct.labels) >= 2 else ct_notes
+        self.ct_panel.set_warnings(ct_notes)
+        self.xray_panel.set_warnings([w for w in both if w not in ct_notes])
 
     def _ct_selected(self, point_id) -> None:
         point = self.ct_store.get(point_id) if point_id is not None else None

@@ -67,7 +67,7 @@ class WindowSession:
                                     [p["uv_px"] for p in session.xray_points], undoable=False)
         metric = session.parameters.get("metric")
         if metric:
-            self.registration_panel.metric_combo.setCurrentText(metric)
+            self.registration_panel.set_metric(metric)
         self.last_result_summary = session.last_result
         if session.last_result:
             try:

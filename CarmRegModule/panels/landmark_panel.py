@@ -100,6 +100,12 @@ class LandmarkPanel(QtWidgets.QWidget):
         self.count_label = QtWidgets.QLabel()
         self.count_label.setObjectName("hint")
         layout.addWidget(self.count_label)
+        self.warning_label = QtWidgets.QLabel()
+        self.warning_label.setObjectName("warning")
+        self.warning_label.setWordWrap(True)
+        self.warning_label.setStyleSheet("color: #ffa94d; font-weight: bold;")
+        self.warning_label.setVisible(False)
+        layout.addWidget(self.warning_label)
 
         buttons = QtWidgets.QGridLayout()
         self.delete_button = QtWidgets.QPushButton("Delete selected")
@@ -163,6 +169,11 @@ class LandmarkPanel(QtWidgets.QWidget):
         if unnamed:
             text += (" + " if names else ": ") + f"{unnamed} unnamed"
         self.count_label.setText(text)
+
+    def set_warnings(self, warnings: list[str]) -> None:
+        """Plausibility warnings on the points (spine order, spacing); [] hides the line."""
+        self.warning_label.setText("\n".join(f"\u26a0 {w}" for w in warnings))
+        self.warning_label.setVisible(bool(warnings))
 
     def set_assigned(self, assigned: dict[int, str]) -> None:
         """Show the level the registration assigned to each click ({point id: level}); {} clears."""

@@ -25,6 +25,10 @@ STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding th
                 "fine": "Fitting the clicked centres", "refine": "Refining on the image",
                 "final_drr": "Rendering the final DRR"}
 STAGES_ORDER = tuple(STAGE_TITLES)
+METRIC_NAMES = {"gc": "Gradient correlation (GC)", "go": "Gradient orientation (GO)",
+                "ncc": "Normalised cross-correlation (NCC)", "gi": "Gradient information (GI)",
+                "mi": "Mutual information (MI)", "psnr": "Peak signal-to-noise ratio (PSNR)",
+                "ssim": "Structural similarity (SSIM)"}
 STAGE_NUMBERS = {"database": "1a", "spatial": "1b", "levels": "1c", "depth": "2", "fine": "3", "refine": "4",
                  "final_drr": ""}  # the method paper's stage numbers, kept in the table for the engineer
 # Typical seconds per stage on this project's 2-core CPU (sample case, unnamed clicks, database cached; the
@@ -130,11 +134,12 @@ class RegistrationPanel(QtWidgets.QWidget):
 
         form = QtWidgets.QFormLayout()
         self.metric_combo = QtWidgets.QComboBox()
-        self.metric_combo.addItems(list(metrics) or ["gc"])
-        self.metric_combo.setToolTip("Image similarity for the spatial search (stage 1b): gc gradient "
-                                     "correlation, go gradient orientation, ncc, gi, mi, psnr, ssim")
-        form.addRow("Similarity metric", self.metric_combo)
-        self.metric_combo.currentTextChanged.connect(lambda _m: self._done and self.reset_requested.emit())
+        for key in list(metrics) or ["gc"]:
+            self.metric_combo.addItem(METRIC_NAMES.get(key, key), key)
+        self.metric_combo.setToolTip("Image similarity for finding the spine in the image (stage 1b); gradient "
+                                     "correlation is the most reliable on C-arm images (README)")
+        form.addRow("Similarity", self.metric_combo)
+        self.metric_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
         self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
         self.cache_check.setChecked(True)
         form.addRow("", self.cache_check)
@@ -188,7 +193,14 @@ class RegistrationPanel(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
-        return {"metric": self.metric_combo.currentText(), "use_cache": self.cache_check.isChecked()}
+        return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
+                "use_cache": self.cache_check.isChecked()}
+
+    def set_metric(self, key: str) -> None:
+        """Choose the metric by its key (``gc``, ``ncc``, ...)."""
+        index = self.metric_combo.findData(key)
+        if index >= 0:
+            self.metric_combo.setCurrentIndex(index)
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""

@@ -52,7 +52,8 @@ def format_margin(margin) -> str:
 
 def ranked_hypotheses(check: dict) -> list[dict]:
     """The labellings considered, best first: the winner, the runner-up, then the registered ones by score (the
-    refinement objective: lower is better), then those not registered (an implausible magnification)."""
+    refinement objective: lower is better), then those not registered (an implausible magnification). Each
+    labelling once (its best fit): without clicks several starts can end on the same level."""
     winner = list(check.get("winner_labels") or check.get("assigned_labels") or [])
     runner_up = list(check.get("runner_up_labels") or [])
 
@@ -61,7 +62,13 @@ def ranked_hypotheses(check: dict) -> list[dict]:
         score = h.get("score")
         rank = 0 if labels == winner else 1 if labels == runner_up else 2
         return rank, not h.get("refined", True), float("inf") if score is None else float(score)
-    return sorted(check.get("hypotheses") or [], key=key)
+    out, seen = [], set()
+    for h in sorted(check.get("hypotheses") or [], key=key):  # no clicks: several fits may land on one level
+        labels = tuple(h.get("labels") or [])
+        if labels not in seen:
+            seen.add(labels)
+            out.append(h)
+    return out
 
 
 def arrow_list(names: list[str], labels: list[str]) -> str:

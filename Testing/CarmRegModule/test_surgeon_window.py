@@ -364,3 +364,34 @@ def test_screenshots_of_your_own_files_not_only_the_sample(qapp, synthetic_case,
     assert Image.open(paths[1]).size == (1280, 720)
     xray = np.asarray(Image.open(paths[0]).convert("L"), float)
     assert xray.std() > 10  # the synthetic X-ray, not an empty view
+
+
+# ------------------------------------------------------------------------------------------- 9. smaller ones
+
+def test_a_ct_point_that_breaks_the_spine_order_is_warned_about(window):
+    store, panel = window.ct_store, window.ct_panel
+    store.add("T12", [0.0, 0.0, 40.0])
+    store.add("L1", [0.0, 0.0, 10.0])
+    assert not panel.warning_label.isVisibleTo(panel)
+    l2 = store.add("L2", [80.0, -60.0, 60.0])  # in the liver, above L1
+    assert panel.warning_label.isVisibleTo(panel)
+    assert "not in spine order" in panel.warning_label.text() and "L2" in panel.warning_label.text()
+    store.move(l2, [0.0, 0.0, -20.0])
+    assert not panel.warning_label.isVisibleTo(panel)
+
+
+def test_no_clicks_lists_each_level_once_and_metrics_have_their_names(xray_window):
+    from carmreg.panels.result_panel import ranked_hypotheses
+
+    check = {"winner_labels": ["T11"], "runner_up_labels": ["T10"],
+             "hypotheses": [{"labels": ["T11"], "score": 0.52, "refined": True},
+                            {"labels": ["T11"], "score": 0.50, "refined": True},
+                            {"labels": ["T10"], "score": 0.57, "refined": True},
+                            {"labels": ["T10"], "score": 0.55, "refined": True}]}
+    ranked = ranked_hypotheses(check)
+    assert [(h["labels"], h["score"]) for h in ranked] == [(["T11"], 0.50), (["T10"], 0.55)]
+    combo = xray_window.registration_panel.metric_combo
+    assert combo.itemText(0) == "Gradient correlation (GC)"
+    assert xray_window.registration_panel.parameters()["metric"] == "gc"
+    xray_window.registration_panel.set_metric("ncc")
+    assert xray_window.registration_panel.parameters()["metric"] == "ncc"
