@@ -228,18 +228,41 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         return box
 
     def _xray_display_box(self) -> QtWidgets.QGroupBox:
+        """Contrast of the X-ray: window and level (also right-drag in the view), auto, invert, fit."""
         box = QtWidgets.QGroupBox("X-ray display")
-        row = QtWidgets.QHBoxLayout(box)
+        grid = QtWidgets.QGridLayout(box)
+        self.xray_window_spin, self.xray_level_spin = QtWidgets.QDoubleSpinBox(), QtWidgets.QDoubleSpinBox()
+        for spin, name in ((self.xray_window_spin, "Window"), (self.xray_level_spin, "Level")):
+            spin.setRange(-1e7, 1e7)
+            spin.setDecimals(0)
+            spin.setKeyboardTracking(False)
+            spin.setToolTip(f"{name} of the X-ray display (pixel values); right-drag in the view changes both")
+            spin.valueChanged.connect(self._xray_window_edited)
+        self.xray_view.window_changed.connect(self._xray_window_shown)
         auto = QtWidgets.QPushButton("Auto contrast")
+        auto.setToolTip("Window the exposed field's 1st-99.5th percentiles")
         auto.clicked.connect(self.xray_view.auto_window)
         self.invert_check = QtWidgets.QCheckBox("Invert")
         self.invert_check.toggled.connect(self.xray_view.set_invert)
         fit = QtWidgets.QPushButton("Fit")
         fit.clicked.connect(self.xray_view.fit)
-        for w in (auto, self.invert_check, fit):
-            row.addWidget(w)
-        row.addStretch(1)
+        grid.addWidget(QtWidgets.QLabel("Window"), 0, 0)
+        grid.addWidget(self.xray_window_spin, 0, 1)
+        grid.addWidget(QtWidgets.QLabel("Level"), 0, 2)
+        grid.addWidget(self.xray_level_spin, 0, 3)
+        grid.addWidget(auto, 1, 0, 1, 2)
+        grid.addWidget(self.invert_check, 1, 2)
+        grid.addWidget(fit, 1, 3)
         return box
+
+    def _xray_window_shown(self, window: float, level: float) -> None:
+        for spin, value in ((self.xray_window_spin, window), (self.xray_level_spin, level)):
+            spin.blockSignals(True)
+            spin.setValue(value)
+            spin.blockSignals(False)
+
+    def _xray_window_edited(self, _value: float) -> None:
+        self.xray_view.set_window_level(self.xray_window_spin.value(), self.xray_level_spin.value())
 
     def _connect(self) -> None:
         for store in (self.ct_store, self.xray_store):

@@ -310,8 +310,9 @@ class WindowRegistration:
         text = None
         if contradicted and not reason:
             text = "Use the names the image supports: " + ", ".join(
-                sorted(set(self.names_to_accept().values()), key=_level_key)) + " (and register again)"
-        self.result_panel.set_accept_enabled(not reason, reason, text)
+                sorted(set(self.names_to_accept().values()), key=_level_key))
+            reason = "Rename the X-ray clicks to the names the image supports and register again (Ctrl+Z undoes)"
+        self.result_panel.set_accept_enabled(self.act_accept_names.isEnabled(), reason, text)
 
     def accept_assigned_names(self, ask: bool = True, register: bool = True) -> dict[int, str]:
         """Name the X-ray clicks as the level identification assigned them (one undo step); returns the
@@ -364,7 +365,8 @@ class WindowRegistration:
         return changes
 
     def export_result(self, out_dir: str | Path) -> dict:
-        """Write result.json, overlay.png, DRR, .tfm and figures through the logic; returns {name: path}."""
+        """Write result.json, overlay.png, DRR, .tfm and figures through the logic, then the report page and
+        the overlay as the view shows it (``overlay_view.png``); returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
         if getattr(self.result, "restored", False):
@@ -375,6 +377,7 @@ class WindowRegistration:
             self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
             or {})
         paths["report"] = self.export_report(Path(out_dir) / "report.pdf")  # the page as on screen
+        paths["overlay_view"] = self.save_screenshot(Path(out_dir) / "overlay_view.png", "overlay")
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)

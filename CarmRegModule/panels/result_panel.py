@@ -189,8 +189,8 @@ class ResultPanel(QtWidgets.QWidget):
         form.addRow("Margin", self.level_margin_label)
         form.addRow("Runner-up", self.level_runner_up_label)
         self.hypotheses_table = QtWidgets.QTableWidget(0, 4)
-        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score (lower = better)", "Similarity",
-                                                         "mPDE (mm)"])
+        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score\n(lower better)", "Similarity",
+                                                         "mPDE\n(mm)"])
         self.hypotheses_table.verticalHeader().setVisible(False)
         self.hypotheses_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.hypotheses_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.NoSelection)
@@ -199,7 +199,8 @@ class ResultPanel(QtWidgets.QWidget):
         for c in (1, 2, 3):
             header.setSectionResizeMode(c, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.hypotheses_table.setFixedHeight(
-            self.hypotheses_table.verticalHeader().defaultSectionSize() * (MAX_HYPOTHESES + 1) + 6)
+            self.hypotheses_table.verticalHeader().defaultSectionSize() * MAX_HYPOTHESES
+            + header.sizeHint().height() + 6)
         self.hypotheses_table.setToolTip("The labellings tried, best first (bold: the image's choice). Score: "
                                          "image dissimilarity + landmark misfit, lower is better")
         form.addRow(self.hypotheses_table)
@@ -288,7 +289,9 @@ class ResultPanel(QtWidgets.QWidget):
         ink = "black" if QtGui.QColor(colour).lightnessF() > 0.6 else "white"
         self.banner.setStyleSheet(f"QLabel#level_banner {{ background: {colour}; color: {ink}; padding: 6px; "
                                   "border-radius: 3px; }")
-        self.banner.setText(f"<b style='font-size:12pt'>{html.escape(headline)}</b><br>{html.escape(reason)}")
+        # the headline only: the reason is the message in "Level identification" below, in the same colour
+        self.banner.setText(f"<b style='font-size:12pt'>{html.escape(headline)}</b>")
+        self.banner.setToolTip(reason)
         self.banner.setVisible(True)
 
     def set_result(self, result, click_names: list[str] | None = None) -> None:

@@ -118,6 +118,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
     hover_text = QtCore.Signal(str)
     status_message = QtCore.Signal(str)
     point_activated = QtCore.Signal(object)  # position of a placed/selected point
+    window_changed = QtCore.Signal(float, float)  # window, level (image values)
 
     def __init__(self, store=None, parent=None):
         super().__init__(parent)
@@ -183,6 +184,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
     def set_window_level(self, window: float, level: float) -> None:
         self.window, self.level = max(float(window), 1e-6), float(level)
         self._render()
+        self.window_changed.emit(self.window, self.level)
 
     def auto_window(self) -> None:
         if self._image is not None and not self._rgb:

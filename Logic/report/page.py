@@ -53,8 +53,9 @@ def drawn_mpde_mm(levels: list[dict]) -> float | None:
     return float(np.mean(values)) if values else None
 
 
-def level_answer(level_check: dict | None, ok: bool = True) -> tuple[str, str, str]:
-    """(headline, reason, colour) of the level answer for the page and the window's banner."""
+def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
+    """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
+    the margin and how to read it to the reason."""
     check = level_check or {}
     status = check.get("status")
     headline = STATUS_WORDS.get(status, str(status).upper())
@@ -68,7 +69,7 @@ def level_answer(level_check: dict | None, ok: bool = True) -> tuple[str, str, s
     reason = check.get("message") or ("the level check was not run (fully named clicks, level check off)"
                                       if not check else "")
     margin = check.get("margin")
-    if margin is not None and np.isfinite(margin):
+    if detail and margin is not None and np.isfinite(margin):
         reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
                   "is better; 0.02 separates confident from ambiguous)"
     colour = STATUS_COLOURS.get(status, STATUS_COLOURS[None])
@@ -78,12 +79,12 @@ def level_answer(level_check: dict | None, ok: bool = True) -> tuple[str, str, s
 
 
 def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
-    """(headline, reason, colour) to show above a result: the level answer, or "CHECKS FAILED" with the
-    failed checks when the result is not ok for another reason; None when there is nothing to say (level check
-    off and every check passed)."""
+    """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
+    the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
+    reason; None when there is nothing to say (level check off and every check passed)."""
     if not level_check and ok:
         return None
-    headline, reason, colour = level_answer(level_check, ok)
+    headline, reason, colour = level_answer(level_check, ok, detail=False)
     if not ok and (level_check or {}).get("status") != "contradicted":
         headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
     return headline, reason, colour

@@ -308,6 +308,8 @@ def test_nothing_overprints_at_common_screen_sizes(xray_window, size):
     process_events(50)
     rp = win.result_panel
     scroll = rp.parentWidget()  # the viewport of the step's scroll area
+    for panel in (rp, win.registration_panel):  # no page needs a horizontal scroll bar (clipped text)
+        assert panel.minimumSizeHint().width() <= panel.parentWidget().width(), panel.objectName()
     for button in (rp.report_button, rp.export_button, rp.png_button):
         top_left = button.mapTo(scroll, QtCore.QPoint(0, 0))
         assert 0 <= top_left.y() and top_left.y() + button.height() <= scroll.height(), button.text()
@@ -395,3 +397,16 @@ def test_no_clicks_lists_each_level_once_and_metrics_have_their_names(xray_windo
     assert xray_window.registration_panel.parameters()["metric"] == "gc"
     xray_window.registration_panel.set_metric("ncc")
     assert xray_window.registration_panel.parameters()["metric"] == "ncc"
+
+
+def test_xray_window_and_level_can_be_typed_and_follow_right_drag(xray_window):
+    from gui_helpers import RIGHT, drag
+
+    win, view = xray_window, xray_window.xray_view
+    win.xray_window_spin.setValue(200.0)
+    win.xray_level_spin.setValue(300.0)
+    assert (view.window, view.level) == (200.0, 300.0)
+    drag(view, (100.0, 100.0), (160.0, 100.0), RIGHT)  # right-drag widens the window
+    assert view.window > 200.0 and win.xray_window_spin.value() == pytest.approx(view.window, abs=0.5)
+    win.invert_check.setChecked(True)
+    assert view.invert
