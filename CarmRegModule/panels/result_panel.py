@@ -162,6 +162,7 @@ class ResultPanel(QtWidgets.QWidget):
         row.addWidget(self.export_button)
         row.addWidget(self.png_button)
         layout.insertLayout(2, row)  # under the heading and the level banner: never below the fold
+        layout.insertWidget(2, self.accept_button)  # the one step on the level names, right under the banner
         self.set_result(None)
 
     def _level_box(self) -> QtWidgets.QGroupBox:
@@ -208,8 +209,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.accept_button.setToolTip("Name the X-ray clicks as assigned by the level identification (Ctrl+Z "
                                       "undoes)")
         self.accept_button.clicked.connect(self.accept_names_requested)
-        form.addRow(self.accept_button)
-        return box
+        return box  # the accept button sits at the top of the step (see __init__), shown when it can act
 
     def set_level_check(self, check: dict | None, click_names: list[str] | None = None) -> None:
         """Show ``result.level_check`` ({} or None: no identification ran); ``click_names`` = the clicks as
@@ -268,6 +268,7 @@ class ResultPanel(QtWidgets.QWidget):
         """Enable "Accept assigned names"; ``text`` relabels it (contradicted names: "Use the names the image
         supports: ...")."""
         self.accept_button.setEnabled(bool(enabled))
+        self.accept_button.setVisible(bool(enabled))
         self.accept_button.setText(text or "Accept assigned names")
         self.accept_button.setObjectName("danger" if text else "")
         self.accept_button.setStyleSheet("QPushButton { background: #c92a2a; color: white; font-weight: bold; }"

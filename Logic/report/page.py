@@ -209,6 +209,29 @@ def _inputs_block(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _labellings_block(check: dict | None) -> str:
+    """How the levels were named: the mode and every labelling registered with its score, best first."""
+    if not check:
+        return "The level names were not checked against the image (level check off)."
+    mode = {"named": "named clicks, checked against the names shifted up and down",
+            "partly_named": "partly named clicks, the others named from the image",
+            "unnamed": "unnamed clicks, named from the image",
+            "image_only": "no clicks: levels from the image alone"}.get(check.get("mode"), str(check.get("mode")))
+    tried = sorted((h for h in check.get("hypotheses") or [] if h.get("refined", True) and h.get("labels")),
+                   key=lambda h: float(h.get("score", np.inf)))
+    seen, parts = set(), []
+    for h in tried:
+        key = tuple(h["labels"])
+        if key not in seen:
+            seen.add(key)
+            parts.append(f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(key) > 1 else key[0]} "
+                         f"{float(h['score']):.3f}")
+    text = f"Mode: {mode}."
+    if parts:
+        text += " Labellings registered, score (lower is better): " + ", ".join(parts[:8]) + "."
+    return _wrap(text, 110)
+
+
 def _short_path(path: str, width: int = 78) -> str:
     return path if len(path) <= width else "..." + path[-(width - 3):]
 
@@ -273,9 +296,11 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     fig.text(0.05, 0.285, "Inputs and geometry (value <- where it came from)", fontsize=9, fontweight="bold",
              va="top")
     fig.text(0.05, 0.267, _inputs_block(doc), **mono)
+    fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
+    fig.text(0.05, 0.137, _labellings_block(check), fontsize=7.2, va="top")
     other = [w for w in doc["warnings"] if doc["ok"]]
     if other:
-        fig.text(0.05, 0.14, _wrap("Warnings: " + "; ".join(other), 120), fontsize=7, color="#e8590c", va="top")
+        fig.text(0.05, 0.095, _wrap("Warnings: " + "; ".join(other), 120), fontsize=7, color="#e8590c", va="top")
     fig.text(0.05, 0.045, _versions_line(doc), fontsize=6.8, va="top", color="#495057")
     fig.text(0.05, 0.028, "Frames: CT LPS mm; detector (u, v) = (column, row) px, 0-based pixel centres; PDE and "
              "mPDE in mm on the detector. Full numbers: result.json.", fontsize=6.5, va="top", color="#495057")

@@ -310,7 +310,7 @@ def test_nothing_overprints_at_common_screen_sizes(xray_window, size):
     scroll = rp.parentWidget()  # the viewport of the step's scroll area
     for panel in (rp, win.registration_panel):  # no page needs a horizontal scroll bar (clipped text)
         assert panel.minimumSizeHint().width() <= panel.parentWidget().width(), panel.objectName()
-    for button in (rp.report_button, rp.export_button, rp.png_button):
+    for button in (rp.accept_button, rp.report_button, rp.export_button, rp.png_button):
         top_left = button.mapTo(scroll, QtCore.QPoint(0, 0))
         assert 0 <= top_left.y() and top_left.y() + button.height() <= scroll.height(), button.text()
     assert win.overlay_view.width() >= 0.35 * size[0]
