@@ -137,19 +137,14 @@ def _draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None,
         pde = lv.get("pde_mm")
         text = lv["label"] + ("?" if fitted and contradicted else "") + (f"  {pde:.1f} mm" if pde is not None else "")
         ax.annotate(text, (u, v), xytext=(7, -3), textcoords="offset points", color=colour, fontsize=font,
-                    fontweight="bold", path_effects=_outline())
+                    fontweight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55,
+                                             "ec": "none"})  # a box, not an outline: the name stays text
     for uv in (clicked or {}).values():
         ax.plot(float(uv[0]), float(uv[1]), "+", ms=9, mew=1.3, color=CLICK_COLOUR)
     ax.set_xlim(-0.5, cols - 0.5)
     ax.set_ylim(rows - 0.5, -0.5)
     ax.set_xticks([])
     ax.set_yticks([])
-
-
-def _outline():
-    from matplotlib import patheffects
-
-    return [patheffects.withStroke(linewidth=2.2, foreground="black")]
 
 
 # ----------------------------------------------------------------------------------------------- text blocks

@@ -31,6 +31,11 @@ def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir,
     assert set(fitted) == set(truth.labels)
     assert all(lv["name_margin"] == pytest.approx(check["margin"]) for lv in fitted.values())
     assert "level identification: clicks named" in capsys.readouterr().out
+    pypdf = pytest.importorskip("pypdf")  # the one-page report carmreg register writes beside result.json
+    pages = pypdf.PdfReader(str(tmp_path / "out" / "report.pdf")).pages
+    text = pages[0].extract_text()
+    assert len(pages) == 1 and "LEVELS CONFIRMED BY THE IMAGE: " + ", ".join(check["assigned_labels"]) in text
+    assert "NOT FOR DIAGNOSIS" in text and "unnamed clicks, named from the image" in text
 
 
 def test_no_clicks_names_the_levels_in_view(sample_case_dir, tmp_path, capsys):
