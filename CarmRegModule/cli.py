@@ -222,7 +222,7 @@ def _print_report(result, seconds: float, out) -> None:
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
-          f"carm.tfm ({seconds:.1f} s in all)")
+          f"carm.tfm, report.pdf ({seconds:.1f} s in all)")
 
 
 def level_summary(check: dict) -> str:
