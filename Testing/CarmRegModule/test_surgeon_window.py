@@ -353,8 +353,10 @@ def test_gui_with_a_missing_session_file_exits_2(tmp_path, capsys):
     assert len(err) == 1 and "nope.carmreg.json" in err[0] and "not found" in err[0]
 
 
-def test_screenshots_of_your_own_files_not_only_the_sample(qapp, synthetic_case, tmp_path):
+def test_screenshots_of_your_own_files_not_only_the_sample(qapp, synthetic_case, tmp_path, monkeypatch):
     from PIL import Image
+
+    monkeypatch.setenv("CARMREG_NO_VTK", "1")  # keep it fast: no 3D
 
     from carmreg.app import export_screenshots
 
