@@ -412,3 +412,35 @@ def test_xray_window_and_level_can_be_typed_and_follow_right_drag(xray_window):
     assert view.window > 200.0 and win.xray_window_spin.value() == pytest.approx(view.window, abs=0.5)
     win.invert_check.setChecked(True)
     assert view.invert
+
+
+def test_run_gui_with_a_session_opens_it_with_its_result(window, synthetic_case, tmp_path, monkeypatch):
+    from qtpy import QtWidgets
+
+    from carmreg import app
+    from carmreg.main_window import CarmRegWidget
+
+    _load_case(window, synthetic_case)
+    window.set_result(_named_result(window, window.xray_store.labels(), [0.5, 0.7, 0.6]))
+    path = window.save_session(tmp_path / "case.carmreg.json")
+    monkeypatch.setenv("CARMREG_STATE_DIR", str(tmp_path / "state2"))
+    monkeypatch.setenv("CARMREG_NO_VTK", "1")
+    seen = {}
+
+    def close_when_loaded(tries=[0]):  # noqa: B006 - a counter shared by the re-armed timer
+        tries[0] += 1
+        opened = [w for w in QtWidgets.QApplication.topLevelWidgets()
+                  if isinstance(w, CarmRegWidget) and w.isVisible() and w is not window]
+        win = opened[-1] if opened else None
+        if win is not None and (win.result is not None or tries[0] > 100):
+            seen.update(title=win.windowTitle(), restored=getattr(win.result, "restored", False),
+                        names=win.overlay_view.level_names())
+            win.discard_and_close()
+            QtWidgets.QApplication.instance().exit(0)
+        else:
+            QtCore.QTimer.singleShot(100, close_when_loaded)
+
+    QtCore.QTimer.singleShot(100, close_when_loaded)
+    assert app.run_gui(session=str(path)) == 0
+    assert seen["title"].startswith("CarmReg - case.carmreg.json") and seen["restored"]
+    assert seen["names"] == window.overlay_view.level_names()
