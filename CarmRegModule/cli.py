@@ -60,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     reg = sub.add_parser("register", help="register a CT to an X-ray")
     reg.add_argument("--ct", required=True, help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
     reg.add_argument("--ct-landmarks", required=True, help="CT centroids (.mrk.json or JSON), named by level")
-    reg.add_argument("--xray", required=True, help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
+    reg.add_argument("--xray", required=True, help="X-ray: DICOM (XA/RF/DX/CR), PNG, TIFF or JPEG")
     clicks = reg.add_mutually_exclusive_group(required=True)
     clicks.add_argument("--xray-landmarks", help="X-ray centroids: .mrk.json (points named by level, or unnamed: "
                         "CarmReg names them), JSON {\"T12\": [column, row]} or unnamed [[column, row], ...]")
@@ -141,6 +141,9 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-level-check", action="store_true",
                    help="named clicks: skip the wrong-level check (registration redone with the names shifted "
                    "+-1 and +-2 levels); unnamed clicks are always identified")
+    p.add_argument("--polarity", choices=("auto", "bone-dark", "bone-bright"), default="auto",
+                   help="how the X-ray shows bone (default auto: found from the image against the CT's DRRs and "
+                   "recorded in result.json; set it only to override)")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -152,7 +155,7 @@ def _parameters(args):
     from carmreg.logic.registration.pipeline import RegistrationParameters
     from carmreg.logic.resources import cache_dir
 
-    params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics,
+    params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics, polarity=args.polarity,
                                     level_check=not args.no_level_check,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
     params.fine.seed = args.seed
@@ -201,7 +204,7 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
           f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
     clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
-    paths = save_result(result, out, xray.pixels, clicked, xray.bone_dark)
+    paths = save_result(result, out, xray.pixels, clicked, ct=ct, ct_landmarks=ct_lm)
     _print_report(result, time.perf_counter() - t0, out)
     return result, paths
 
@@ -222,7 +225,7 @@ def _print_report(result, seconds: float, out) -> None:
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
-          f"carm.tfm, report.pdf ({seconds:.1f} s in all)")
+          f"carm.tfm, slicer/CarmReg.mrml, report.pdf ({seconds:.1f} s in all)")
 
 
 def level_summary(check: dict) -> str:

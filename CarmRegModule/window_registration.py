@@ -231,7 +231,9 @@ class WindowRegistration:
             f"magnification {result.magnification:.2f}"
         check = getattr(result, "level_check", None)
         banner = answer_banner(check, bool(result.ok), list(result.warnings))
-        self.overlay_view.set_result(self.xray.pixels, self.xray.bone_dark, result.drr_line_integral,
+        appearance = getattr(result, "appearance", None)
+        bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
+        self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary, banner,
                                      contradicted=(check or {}).get("status") == "contradicted")
         ids = self._result_click_ids(result)
@@ -365,8 +367,9 @@ class WindowRegistration:
         return changes
 
     def export_result(self, out_dir: str | Path) -> dict:
-        """Write result.json, overlay.png, DRR, .tfm and figures through the logic, then the report page and
-        the overlay as the view shows it (``overlay_view.png``); returns {name: path}."""
+        """Write result.json, overlay.png, DRR, .tfm, figures and the 3D Slicer scene (slicer/CarmReg.mrml)
+        through the logic, then the report page and the overlay as the view shows it (``overlay_view.png``);
+        returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
         if getattr(self.result, "restored", False):
@@ -374,8 +377,8 @@ class WindowRegistration:
                                     "(step 4) to export it")
         clicks = self.shown_clicks()
         paths = dict(_registration_api().CarmRegLogic().save_result(
-            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks, bone_dark=self.xray.bone_dark)
-            or {})
+            self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks,
+            ct=self.ct_volume, ct_landmarks=self.ct_store.to_landmarks()) or {})
         paths["report"] = self.export_report(Path(out_dir) / "report.pdf")  # the page as on screen
         paths["overlay_view"] = self.save_screenshot(Path(out_dir) / "overlay_view.png", "overlay")
         if self.last_result_summary is not None:
@@ -393,7 +396,7 @@ class WindowRegistration:
         if getattr(self.result, "restored", False):
             raise RegistrationError("this result was reopened from a session without its DRR: register again "
                                     "(step 4) to write its report")
-        path = write_report_pdf(path, self.result, self.xray.pixels, self.shown_clicks(), self.xray.bone_dark,
+        path = write_report_pdf(path, self.result, self.xray.pixels, self.shown_clicks(),
                                 composite_rgb=self.overlay_view.composite_rgb())
         self.statusBar().showMessage(f"Report written to {path}", 8000)
         return path

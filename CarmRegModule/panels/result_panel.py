@@ -237,9 +237,9 @@ class ResultPanel(QtWidgets.QWidget):
             self.level_assigned_label.setText(f"in the image: {', '.join(visible)}" if visible else "-")
         margin = format_margin(check.get("margin")) if check else "-"
         if check and margin.startswith(("+", "-")) and len(margin) > 1:
-            from carmreg.logic.registration.levels import IdentifyParameters
+            from carmreg.logic.registration.level_confidence import ConfidenceRule
 
-            t = IdentifyParameters().margin
+            t = ConfidenceRule().margin
             margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
         self.level_margin_label.setText(margin)
         runner_up = check.get("runner_up_labels")

@@ -46,11 +46,11 @@ class OverlayView(ImageCanvas):
         """``summary``: the header line (mPDE of the pose drawn, magnification); ``banner``: the level answer
         (headline, reason, colour) drawn across the top; ``contradicted``: the image contradicts the names of
         the fitted levels, which are then drawn in red with a "?"."""
-        from carmreg.logic.image.prepare import field_mask
+        from carmreg.logic.image.field import field_mask
 
         self.banner, self.contradicted = banner, bool(contradicted)
 
-        mask = field_mask(xray_pixels, bone_dark)  # the exposed (collimated) field, as the logic sees it
+        mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
         self._drr01 = (overlay_images.normalise(drr_line_integral, mask) if drr_line_integral is not None
                        else np.zeros_like(self._xray01))

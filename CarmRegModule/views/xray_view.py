@@ -86,7 +86,7 @@ class XrayView(ImageCanvas):
         self._field = None
         self.set_image(None if pixels is None else np.asarray(pixels, np.float32))
         if pixels is not None:
-            from carmreg.logic.image.prepare import field_mask
+            from carmreg.logic.image.field import field_mask
 
             lo, hi = float(np.nanmin(pixels)), float(np.nanmax(pixels))
             self._data_range = (lo, hi if hi > lo else lo + 1.0)

@@ -1,50 +1,33 @@
-"""Turn a stored X-ray into something comparable with a DRR: attenuation, exposed field, coarse binning.
+"""Turn a stored X-ray into something comparable with a DRR: attenuation, coarse binning.
 
-A DRR is a line integral L (bone bright). A fluoroscopy frame stores detected intensity I ~ I0 exp(-L)
-(bone dark); a processed radiograph often stores something like L already (bone bright). So:
+A DRR is a line integral L (bone bright). Inside the exposed field (``field.field_mask``), with I_ref and
+I_lo the 99.5th and 0.5th percentiles there, and the polarity and storage found by ``appearance``:
 
-- ``bone_dark`` images: ``L_est = -log(I / I_ref)`` with ``I_ref`` the 99.5th percentile in the field;
-- bone-bright images: ``L_est = (I - I_min) / (I_max - I_min)`` (already attenuation-like, unknown scale).
+- bone dark, stored as linear intensity (I ~ I0 exp(-L)): ``L_est = -log(I / I_ref)``;
+- bone dark, stored as a log-like display (I ~ a - b L): ``L_est = (I_ref - I) / (I_ref - I_lo)``;
+- bone bright (attenuation-like, unknown scale): ``L_est = (I - I_lo) / (I_ref - I_lo)``.
 
-The exposed field (circular collimation of an image intensifier, shutters) is found as the largest connected
-region brighter than 5 % of the image range (bone-dark) after a small opening, then eroded by 2 % of its
-size so the collimator edge and vignetting rim do not dominate gradient metrics.
+0 outside the field, clipped at 0.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 
-def field_mask(pixels: np.ndarray, bone_dark: bool = True) -> np.ndarray:
-    """Boolean (rows, cols) mask of the exposed field."""
-    img = ndimage.uniform_filter(np.asarray(pixels, np.float32), 5)
-    lo, hi = np.percentile(img, [0.5, 99.5])
-    mask = img > lo + 0.05 * (hi - lo)
-    mask = ndimage.binary_opening(mask, np.ones((5, 5), bool))
-    labels, n = ndimage.label(mask)
-    if n == 0:
-        return np.ones(img.shape, bool)
-    sizes = ndimage.sum(mask, labels, index=np.arange(1, n + 1))
-    mask = ndimage.binary_fill_holes(labels == 1 + int(np.argmax(sizes)))
-    if mask.mean() < 0.05:  # no usable field found: compare everything
-        return np.ones(img.shape, bool)
-    margin = max(1, int(0.02 * np.sqrt(mask.sum())))
-    eroded = ndimage.binary_erosion(mask, iterations=margin)
-    return eroded if eroded.mean() > 0.05 else mask
-
-
-def attenuation(pixels: np.ndarray, mask: np.ndarray, bone_dark: bool = True) -> np.ndarray:
-    """Line-integral-like image (bone bright) from stored pixels; 0 outside the field."""
+def attenuation(pixels: np.ndarray, mask: np.ndarray, bone_dark: bool = True,
+                storage: str = "linear-intensity") -> np.ndarray:
+    """Line-integral-like image (bone bright) from stored pixels (module docstring); 0 outside the field.
+    ``storage`` matters for bone-dark images only: "linear-intensity" or "log-display"."""
     img = np.asarray(pixels, np.float64)
     inside = img[mask]
-    if bone_dark:
-        ref = np.percentile(inside, 99.5)
-        floor = max(ref * 1e-4, 1e-6)
-        out = -np.log(np.clip(img, floor, None) / ref)
+    lo, hi = np.percentile(inside, [0.5, 99.5])
+    if bone_dark and storage == "linear-intensity":
+        floor = max(hi * 1e-4, 1e-6)
+        out = -np.log(np.clip(img, floor, None) / hi)
+    elif bone_dark:
+        out = (hi - img) / max(hi - lo, 1e-9)
     else:
-        lo, hi = np.percentile(inside, [0.5, 99.5])
         out = (img - lo) / max(hi - lo, 1e-9)
     out[~mask] = 0.0
     return np.clip(out, 0.0, None).astype(np.float32)

@@ -363,11 +363,19 @@ def _control_point(index: int, label: str | None, position, extra: dict | None =
     return point
 
 
+def write_markups_lps(path: str | Path, labels: list, points_lps_mm: np.ndarray,
+                      point_extras: list[dict] | None = None) -> Path:
+    """Write named 3D points (LPS mm, ``labels[i]`` may be None) as a Slicer .mrk.json (atomic); a point's
+    ``point_extras[i]`` goes under its namespaced ``"carmreg"`` key."""
+    extras = point_extras or [None] * len(labels)
+    points = [_control_point(i, lb, p, extra) for i, (lb, p, extra) in
+              enumerate(zip(labels, np.asarray(points_lps_mm, float).reshape(-1, 3), extras, strict=True))]
+    return atomic_write_json(path, _markup(points))
+
+
 def write_landmarks_3d(path: str | Path, landmarks: Landmarks3D) -> Path:
     """Write CT centroids as a Slicer .mrk.json in LPS mm (atomic)."""
-    points = [_control_point(i, lb, p) for i, (lb, p) in
-              enumerate(zip(landmarks.labels, landmarks.points_lps_mm, strict=True))]
-    return atomic_write_json(path, _markup(points))
+    return write_markups_lps(path, landmarks.labels, landmarks.points_lps_mm)
 
 
 def write_landmarks_2d(path: str | Path, landmarks: Landmarks2D,

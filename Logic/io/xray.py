@@ -2,7 +2,7 @@
 
 Reading
 -------
-``load_xray(path, ...)`` reads DICOM (XA, RF, DX, CR; single or multi-frame) or PNG/TIFF (8 or 16 bit,
+``load_xray(path, ...)`` reads DICOM (XA, RF, DX, CR; single or multi-frame) or PNG/TIFF/JPEG (8 or 16 bit,
 grey, or RGB whose channels are equal). Geometry comes from the DICOM header when present and from the
 caller (the CLI's ``--sdd-mm``, ``--pixel-spacing-mm``, ``--principal-point-px``, ``--sod-mm``) otherwise;
 a value given by the caller always wins. ``XrayImage.sources`` says where each value came from.
@@ -23,15 +23,15 @@ Pixels
 ``XrayImage.pixels`` is float32 ``image[row, column]`` holding the stored values (no rescale) after the
 MONOCHROME1 inversion, so larger values are brighter as displayed.
 
-Display polarity ``bone_dark``
-------------------------------
+Display polarity ``bone_dark``: what the file says
+---------------------------------------------------
 True when dense bone appears dark (fluoroscopy: pixel value grows with the X-ray intensity reaching the
 detector). From DICOM ``PixelIntensityRelationshipSign`` (0028,1041): +1 means lower stored values where
 less X-ray reaches the detector (behind bone), i.e. bone dark in the stored values; the MONOCHROME1 inversion
 flips that. Without the tag the default is True for XA and RF (fluoroscopy display) and False for DX and CR
-(radiographs are shown with bone bright). PNG/TIFF default to True, because the images this product
-registers are C-arm fluoroscopy exports; pass ``bone_dark=False`` for a radiograph. ``sources["bone_dark"]``
-records which rule applied.
+(radiographs are shown with bone bright); PNG/TIFF/JPEG carry no polarity (True). ``sources["bone_dark"]``
+records which rule applied. This is only the header's word: the registration finds the polarity from the image
+against the CT (``image.appearance``) unless the user sets it.
 
 Writing
 -------
@@ -58,7 +58,7 @@ from carmreg.logic.geometry.camera import CarmIntrinsics
 from carmreg.logic.io.atomic import atomic_write
 
 DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
-IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
+IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
 SOP_CLASS_UIDS = {
     "XA": "1.2.840.10008.5.1.4.1.1.12.1",  # X-Ray Angiographic Image Storage
     "RF": "1.2.840.10008.5.1.4.1.1.12.2",  # X-Ray Radiofluoroscopic Image Storage
@@ -222,7 +222,7 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
               pixel_spacing_mm: float | tuple[float, float] | None = None,
               principal_point_px: tuple[float, float] | None = None, sod_mm: float | None = None,
               frame: int | None = None, bone_dark: bool | None = None) -> XrayImage:
-    """Read an X-ray (DICOM, PNG or TIFF) and its geometry; manual values override the file's.
+    """Read an X-ray (DICOM, PNG, TIFF or JPEG) and its geometry; manual values override the file's.
 
     pixel_spacing_mm: one number (square pixels) or (column, row) spacing at the detector, mm.
     principal_point_px: (u0, v0) = (column, row); default the detector centre.
@@ -239,7 +239,7 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
             image = _read_raster(path, frame)
         else:
             raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
-                                 "PNG/TIFF")
+                                 "PNG/TIFF/JPEG")
     if notes:
         image.meta["library_warnings"] = notes
     manual = {"sdd_mm": sdd_mm, "pixel_spacing_mm": _spacing_pair(pixel_spacing_mm),
@@ -268,7 +268,7 @@ def _check_file(path: Path) -> None:
     if not path.exists():
         raise InputFileError(f"{path}: X-ray file not found")
     if path.is_dir():
-        raise InputFileError(f"{path}: is a folder; give one X-ray file (DICOM, PNG or TIFF)")
+        raise InputFileError(f"{path}: is a folder; give one X-ray file (DICOM, PNG, TIFF or JPEG)")
     if path.stat().st_size == 0:
         raise InputFileError(f"{path}: X-ray file is empty")
 
@@ -385,7 +385,7 @@ def _read_dicom(path: Path, frame: int | None) -> _Partial:
     ds = _dcmread(path)
     dropped = drop_unreadable_elements(ds)
     if "SOPClassUID" not in ds and "PixelData" not in ds:
-        raise InputFileError(f"{path}: not a DICOM file (nor PNG/TIFF); give the X-ray image")
+        raise InputFileError(f"{path}: not a DICOM file (nor PNG/TIFF/JPEG); give the X-ray image")
     modality = str(ds.get("Modality", "") or "").upper()
     if modality and modality not in SOP_CLASS_UIDS and modality not in ("OT", "XC", "RG", "PX", "IO", "MG"):
         raise InputFileError(f"{path}: DICOM modality {modality!r} is not an X-ray image; give an XA, RF, DX "
@@ -641,7 +641,7 @@ def _private_principal_point(ds, g: dict, src: dict, path: Path) -> None:
 # ---- PNG / TIFF
 
 def _read_raster(path: Path, frame: int | None) -> _Partial:
-    """8/16-bit (or float) grey PNG/TIFF via Pillow; multi-page TIFF needs ``frame``."""
+    """8/16-bit (or float) grey PNG/TIFF/JPEG via Pillow; multi-page TIFF needs ``frame``."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -664,7 +664,8 @@ def _read_raster(path: Path, frame: int | None) -> _Partial:
     if pixels.ndim == 3:
         pixels = _grey_from_channels(pixels, path, meta)
     part = _Partial(pixels.astype(np.float32), True, meta=meta)
-    part.sources["bone_dark"] = "default for PNG/TIFF (C-arm fluoroscopy export: bone dark)"
+    part.sources["bone_dark"] = ("no polarity in PNG/TIFF/JPEG files: bone dark assumed until the registration "
+                                 "finds it from the image")
     return part
 
 

@@ -28,6 +28,7 @@ Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -39,21 +40,29 @@ from carmreg.logic.errors import CancelledError, LandmarkError, RegistrationErro
 from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, project
 from carmreg.logic.geometry.projection_distance import mpde_mm, pde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
-from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor, field_mask
+from carmreg.logic.image.appearance import (
+    CLEAR_POLARITY_GC,
+    POLARITIES,
+    Appearance,
+    decide_polarity,
+    fixed_appearance,
+    image_polarity,
+    polarity_scores,
+    storage_scores,
+)
+from carmreg.logic.image.field import field_mask
+from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label, spine_order_warnings
 from carmreg.logic.io.xray import XrayImage
 from carmreg.logic.registration.database import DrrDatabase, build_database, grid, source_digest
 from carmreg.logic.registration.depth import DepthResult, depth_search, tx_limits
 from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, coarse_refine_parameters
+from carmreg.logic.registration.labellings import check_labelling_possible, ct_level_names, identifiable_clicks
 from carmreg.logic.registration.levels import (
-    IdentifyContext,
     IdentifyParameters,
     LevelIdentification,
-    check_labelling_possible,
-    coarse_refine_parameters,
-    ct_level_names,
-    identifiable_clicks,
     identify_from_image,
     identify_levels,
 )
@@ -69,6 +78,7 @@ class RegistrationParameters:
     """Every choice of the pipeline, with the paper's value where it gives one."""
 
     metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
+    polarity: str = "auto"                  # auto (found from the image) | bone-dark | bone-bright
     all_metrics: bool = False               # also compute the other six maps (paper Fig. 6; ~7x the time)
     coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
     ty_half_range_mm: float = 50.0          # medio-lateral search +- (paper: 50)
@@ -89,11 +99,7 @@ class RegistrationParameters:
     cache_dir: str | None = None
 
     def as_dict(self) -> dict:
-        d = dict(self.__dict__)
-        for name in ("fine", "refine", "refine_coarse"):
-            d[name] = dict(getattr(self, name).__dict__)
-        d["identify"] = dict(self.identify.__dict__)
-        return d
+        return dataclasses.asdict(self)
 
 
 @dataclass
@@ -127,6 +133,7 @@ class RegistrationState:
     refine: RefineResult | None = None
     refined_pose: np.ndarray | None = None
     identification: LevelIdentification | None = None
+    appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
@@ -167,6 +174,8 @@ class RegistrationResult:
     parameters: RegistrationParameters
     inputs: dict = field(default_factory=dict)
     level_check: dict | None = None  # LevelIdentification.as_dict(): mode, status, margin, assigned_labels ...
+    appearance: Appearance | None = None  # the X-ray's polarity and storage, and the evidence
+    field_mask: np.ndarray | None = None  # (rows, cols) exposed field of the X-ray
 
     @property
     def magnification(self) -> float:
@@ -208,11 +217,15 @@ class CarmRegLogic:
         _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
         geometry = CarmGeometry(intrinsics, tuple(float(x) for x in ct.center_lps_mm()), float(sod))
-        mask = field_mask(xray.pixels, xray.bone_dark)
-        line_integral = attenuation(xray.pixels, mask, xray.bone_dark)
+        if params.polarity not in ("auto", *POLARITIES):
+            raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
+        mask = field_mask(xray.pixels)
+        appearance = _initial_appearance(xray, params)
+        line_integral = attenuation(xray.pixels, mask, appearance.bone_dark, appearance.storage)
         factor = coarse_factor(intrinsics.pixel_spacing_mm, params.coarse_spacing_mm)
         return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs,
-                                 MuPyramid(ct), line_integral, mask, factor, given_pairs=pairs, warnings=notes)
+                                 MuPyramid(ct), line_integral, mask, factor, given_pairs=pairs, warnings=notes,
+                                 appearance=appearance)
 
     def register(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
                  parameters: RegistrationParameters | None = None) -> RegistrationResult:
@@ -266,7 +279,44 @@ class CarmRegLogic:
         return {"drrs": int(len(ty) * len(tz)), "from_cache": state.database.from_cache,
                 "detector_px": list(intr.size_px), "key": state.database.key}
 
+    def _decide_appearance(self, state: RegistrationState) -> dict:
+        """Polarity and storage from the image against the database (``image.appearance``); the X-ray's
+        attenuation image is rebuilt with them."""
+        p, xray = state.parameters, state.xray
+        rows, cols = state.database.drrs.shape[2:]
+        drrs = state.database.drrs.reshape(-1, rows, cols)
+        scores = polarity_scores(xray.pixels, state.mask, drrs, state.coarse_factor)
+        refined = None
+        if p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
+            self._report("spatial", 0.3, "telling bone-dark from bone-bright")
+            refined = self._refined_polarity_scores(state, scores)
+        storage = storage_scores(xray.pixels, state.mask, drrs, state.coarse_factor)
+        state.appearance = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
+                                           xray.sources.get("bone_dark", ""), storage)
+        a = state.appearance
+        state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
+        if not a.clear:
+            state.warnings.append(f"X-ray polarity: {a.note}")
+        return a.as_dict()
+
+    def _refined_polarity_scores(self, state: RegistrationState, scores: dict) -> dict:
+        """The tie-break of an unclear polarity: each polarity's best database pose refined on the image alone
+        (the levels stage's coarse refinement, no clicks); its final GC is that polarity's score."""
+        p, db = state.parameters, state.database
+        level = state.pyramid.level(p.refine_coarse.mu_spacing_mm)
+        nz = len(db.tz_mm)
+        out = {}
+        for polarity in POLARITIES:
+            iy, iz = divmod(scores["best_index"][polarity], nz)
+            start = np.array([db.tx_mm, db.ty_mm[iy], db.tz_mm[iz], 0.0, 0.0, 0.0])
+            line = attenuation(state.xray.pixels, state.mask, polarity == "bone-dark")
+            r = intensity_refine(level, state.geometry, start, line, state.mask, np.zeros((0, 3)), np.zeros((0, 2)),
+                                 p.refine_coarse, should_stop=self._check_cancel)
+            out[polarity] = float(r.similarity_end)
+        return out
+
     def _spatial(self, state: RegistrationState) -> dict:
+        appearance = self._decide_appearance(state)
         xc = bin_image(state.xray_line_integral, state.coarse_factor)
         mc = bin_mask(state.mask, state.coarse_factor)
         rows, cols = state.database.drrs.shape[2:]
@@ -279,26 +329,34 @@ class CarmRegLogic:
             per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": None if state.pairs is None else float(
                 mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px))}
         return {"metric": p.metric, "per_metric": per_metric,
-                "seconds_by_metric": dict(state.spatial.seconds_by_metric)}
+                "seconds_by_metric": dict(state.spatial.seconds_by_metric), "appearance": appearance}
 
     def _depth(self, state: RegistrationState) -> dict:
         p = state.parameters
         if state.pairs is None:
             return {"skipped": "no clicks: the pose comes from the image alone (levels stage)"}
-        state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
-                                   state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm,
-                                   magnification_range=p.magnification_range)
+        fit = _chosen_fit(state)
+        if fit is not None:  # the levels stage ran this very search for the chosen labelling
+            state.depth = fit.depth
+        else:
+            state.depth = depth_search(state.geometry, state.spatial.ty_mm, state.spatial.tz_mm,
+                                       state.pairs.points_lps_mm, state.pairs.uv_px, p.depth_far_mm, p.depth_step_mm,
+                                       magnification_range=p.magnification_range)
         return {"tx_mm": state.depth.tx_mm, "ty_mm": state.depth.ty_mm, "tz_mm": state.depth.tz_mm,
                 "magnification": state.depth.magnification,
-                "intervertebral_cost_mm": state.depth.cost_mm}
+                "intervertebral_cost_mm": state.depth.cost_mm, "from_levels_stage": fit is not None}
 
     def _fine(self, state: RegistrationState) -> dict:
         if state.pairs is None:
             return {"skipped": "no clicks"}
-        start = state.pose
-        state.fine = fine_search(state.geometry, start, state.pairs.points_lps_mm, state.pairs.uv_px,
-                                 state.parameters.fine, should_stop=self._check_cancel)
-        return {"evaluations": state.fine.evaluations, "objective": state.fine.objective}
+        fit = _chosen_fit(state)
+        if fit is not None and state.depth is fit.depth:  # the levels stage's fine search from the same start
+            state.fine = fit.fine
+        else:
+            state.fine = fine_search(state.geometry, state.pose, state.pairs.points_lps_mm, state.pairs.uv_px,
+                                     state.parameters.fine, should_stop=self._check_cancel)
+        return {"evaluations": state.fine.evaluations, "objective": state.fine.objective,
+                "from_levels_stage": fit is not None and state.fine is fit.fine}
 
     def _levels(self, state: RegistrationState) -> dict:
         p = state.parameters
@@ -306,17 +364,19 @@ class CarmRegLogic:
         state.pairs = state.given_pairs
         if clicks.named and len(clicks.labels) and not p.level_check:
             return {"enabled": False}
-        ctx = IdentifyContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
-                              state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
-                              p.fine, p.refine_coarse, self._check_cancel,
-                              self._labelling_progress(len(clicks.labels), clicks.named,
-                                                       len(ct_level_names(state.ct_landmarks)), p.identify))
+        ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
+                         state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
+                         p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm, p.depth_step_mm,
+                         self._check_cancel,
+                         self._labelling_progress(len(clicks.labels), clicks.named,
+                                                  len(ct_level_names(state.ct_landmarks)), p.identify))
+        polarity_clear = state.appearance is None or state.appearance.clear
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        p.identify)
+                                        p.identify, polarity_clear)
         else:
-            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify)
+            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, polarity_clear)
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -327,12 +387,15 @@ class CarmRegLogic:
         return {"enabled": True, **ident.as_dict()}
 
     def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
-        """The levels stage's progress hook: "labelling 3 of 7: T10, T11, T12" before each labelling is
-        registered. 7 = the usual count: the first candidates and the winner's two neighbours (unnamed; at most
-        the runs of consecutive CT levels), the given names and one level up and down (named), the map's peaks
-        and one challenge (no clicks); raised when more are needed."""
+        """The levels stage's progress hook (``FitContext.on_labelling``): "labelling 3 of 7: T10, T11, T12"
+        before each registration of a labelling. 7 = the usual count: the first candidates and the winner's two
+        neighbours (unnamed; at most the runs of consecutive CT levels), the given names and one level up and
+        down (named), the map's peaks and one challenge (no clicks), plus the leading two refitted from each
+        other's pose (``confirm_leaders``); raised when more are needed."""
         runs = max(n_ct_levels - n_clicks + 1, 1)
         expected = p.image_starts + 2 if n_clicks == 0 else min(3 if named else p.candidates + 2, runs)
+        if n_clicks and p.confirm_leaders:
+            expected += min(2, runs - 1)
         count = {"done": 0, "expected": expected}
 
         def on_labelling(labels: list) -> None:
@@ -371,10 +434,9 @@ class CarmRegLogic:
         ident = state.identification
         if ident is not None and ident.mode == "image_only":
             return np.asarray(ident.winner.pose, float), True
-        if ident is not None and state.fine is not None:
-            for h in ident.hypotheses:
-                if h.refined and h.labels == state.pairs.labels and np.array_equal(h.fine_pose, state.fine.pose):
-                    return np.asarray(h.pose, float), True
+        fit = _chosen_fit(state)
+        if fit is not None and fit.refined and state.fine is fit.fine:
+            return fit.pose, True
         p = state.parameters
         r = intensity_refine(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.pose,
                              state.xray_line_integral, state.mask, points, uv, p.refine_coarse,
@@ -395,12 +457,13 @@ class CarmRegLogic:
 
     # ------------------------------------------------------------------ result
     def save_result(self, result: RegistrationResult, out_dir, xray_pixels: np.ndarray | None = None,
-                    clicked: dict | None = None, bone_dark: bool = True) -> dict:
-        """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``)."""
+                    clicked: dict | None = None, ct=None, ct_landmarks=None) -> dict:
+        """Write result.json, overlay.png, drr.png/.nrrd, carm.tfm and figures (``report.save_result``); given
+        the CT and its landmarks, the 3D Slicer scene too."""
         from carmreg.logic.report.result_files import save_result
 
         pixels = xray_pixels if xray_pixels is not None else result.xray_line_integral
-        return save_result(result, out_dir, pixels, clicked, bone_dark if xray_pixels is not None else False)
+        return save_result(result, out_dir, pixels, clicked, ct=ct, ct_landmarks=ct_landmarks)
 
     def result(self, state: RegistrationState) -> RegistrationResult:
         pose = CarmPose.from_array(state.pose)
@@ -429,6 +492,7 @@ class CarmRegLogic:
             if state.database else {},
             ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
             level_check=state.identification.as_dict() if state.identification else None,
+            appearance=state.appearance, field_mask=state.mask,
             inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                     "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
 
@@ -467,7 +531,25 @@ def _drop_results_from(state: RegistrationState, name: str) -> None:
             setattr(state, attribute, None)
     if "levels" in later:  # the pairs the levels stage chose are its result too
         state.pairs = state.given_pairs
+    if "spatial" in later:  # the polarity the spatial stage found, and the attenuation image built with it
+        state.appearance = _initial_appearance(state.xray, state.parameters)
+        state.xray_line_integral = attenuation(state.xray.pixels, state.mask, state.appearance.bone_dark,
+                                               state.appearance.storage)
     state.stages = [s for s in state.stages if s.name not in later]
+
+
+def _chosen_fit(state: RegistrationState) -> LabellingFit | None:
+    """The levels stage's fit of the labelling the registration continues with (None without one)."""
+    ident = state.identification
+    if ident is None or ident.mode == "image_only" or state.pairs is None:
+        return None
+    fit = ident.chosen
+    return fit if fit.labels == list(state.pairs.labels) and fit.depth is not None else None
+
+
+def _initial_appearance(xray: XrayImage, params: RegistrationParameters) -> Appearance:
+    """The appearance before the spatial stage finds it: the user's polarity, else the file's."""
+    return fixed_appearance(params.polarity, xray.bone_dark, xray.sources.get("bone_dark", ""))
 
 
 def _name_margins(ident: LevelIdentification | None) -> dict[str, float]:

@@ -104,12 +104,13 @@ def _normalise(image: np.ndarray, mask: np.ndarray | None, low_pct: float = 1.0,
 
 
 def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, bone_dark: bool,
-                     alpha: float = 0.5) -> np.ndarray:
+                     alpha: float = 0.5, mask: np.ndarray | None = None) -> np.ndarray:
     """(rows, cols, 3) uint8: the window's default overlay - the X-ray bone bright in grey, the DRR added in
-    amber with weight ``alpha``, black outside the exposed field (``image.prepare.field_mask``)."""
-    from carmreg.logic.image.prepare import field_mask
+    amber with weight ``alpha``, black outside the exposed field ``mask`` (default ``image.field.field_mask``)."""
+    from carmreg.logic.image.field import field_mask
 
-    mask = field_mask(xray_pixels, bone_dark)
+    if mask is None or np.shape(mask) != np.shape(xray_pixels):
+        mask = field_mask(xray_pixels)
     xray01 = _normalise(xray_pixels, mask)
     xray01 = np.where(mask, 1.0 - xray01 if bone_dark else xray01, 0.0)
     drr01 = _normalise(drr_line_integral, mask) if drr_line_integral is not None else np.zeros_like(xray01)
@@ -244,19 +245,29 @@ def _wrap(text: str, width: int) -> str:
 
 # ----------------------------------------------------------------------------------------------- page
 
-def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, bone_dark: bool = True,
+def _bone_dark(result, bone_dark: bool | None) -> bool:
+    """The X-ray's polarity: as given, else as the registration found it (``result.appearance``), else dark."""
+    if bone_dark is not None:
+        return bool(bone_dark)
+    appearance = getattr(result, "appearance", None)
+    return bool(getattr(appearance, "bone_dark", True))
+
+
+def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, bone_dark: bool | None = None,
                   composite_rgb: np.ndarray | None = None, made_utc: str | None = None):
     """The report page as a matplotlib Figure (A4 portrait). ``composite_rgb``: the overlay image as the window
-    shows it (default: ``screen_composite``); ``clicked``: {name: (u, v) px} of the X-ray clicks."""
+    shows it (default: ``screen_composite``); ``clicked``: {name: (u, v) px} of the X-ray clicks; ``bone_dark``:
+    the X-ray's polarity (default: the registration's ``appearance``)."""
     from matplotlib.figure import Figure
 
     from carmreg.logic.report.result_files import result_dict
 
+    bone_dark = _bone_dark(result, bone_dark)
     doc = result_dict(result)
     check = doc.get("level_check") or None
     status = (check or {}).get("status")
     rgb = composite_rgb if composite_rgb is not None else screen_composite(
-        xray_pixels, result.drr_line_integral, bone_dark)
+        xray_pixels, result.drr_line_integral, bone_dark, mask=getattr(result, "field_mask", None))
     drawn = drawn_mpde_mm(doc["levels"])
     made = made_utc or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
@@ -310,7 +321,7 @@ def _box(colour: str):
 
 
 def write_report_pdf(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
-                     bone_dark: bool = True, composite_rgb: np.ndarray | None = None) -> Path:
+                     bone_dark: bool | None = None, composite_rgb: np.ndarray | None = None) -> Path:
     """Write the one-page report as a PDF, atomically (see module docstring)."""
     import matplotlib
 
@@ -321,7 +332,7 @@ def write_report_pdf(path: str | Path, result, xray_pixels: np.ndarray, clicked:
 
 
 def write_report_png(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
-                     bone_dark: bool = True, composite_rgb: np.ndarray | None = None, dpi: int = 110) -> Path:
+                     bone_dark: bool | None = None, composite_rgb: np.ndarray | None = None, dpi: int = 110) -> Path:
     """The same page as a PNG (for the README and quick looks)."""
     fig = report_figure(result, xray_pixels, clicked, bone_dark, composite_rgb)
     return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))

@@ -14,11 +14,13 @@ Files (all written atomically into ``out_dir``):
   and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings;
   a banner at the top states how the levels were named and how sure that is (green confident, yellow proposed
   from the image alone, amber ambiguous, red contradicted).
-- ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; 2D image embedded in LPS:
-  ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step along columns and rows).
+- ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; a 3D one-slice volume on
+  the detector plane in LPS: ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step
+  along columns and rows, then the detector normal; it opens in 3D Slicer in place).
 - ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).
 - ``convergence.png`` (paper Fig. 9-10) and ``similarity_maps.png`` (paper Fig. 6).
 - ``report.pdf``: the one-page report (``report.page``).
+- ``slicer/CarmReg.mrml`` and its files, when the CT is given: a 3D Slicer scene (see ``slicer_scene``).
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ def result_dict(result) -> dict:
                     "pose": s.pose.as_dict(), **to_jsonable(s.extra)} for s in result.stages],
         "levels": result.levels,
         "level_check": to_jsonable(result.level_check),
+        "appearance": to_jsonable(result.appearance.as_dict()) if result.appearance is not None else None,
         "parameters": to_jsonable(result.parameters.as_dict()),
         "inputs": result.inputs,
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
@@ -157,19 +160,50 @@ def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:
     return atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
 
 
-def write_drr_nrrd(path: str | Path, line_integral: np.ndarray, geometry, pose) -> Path:
-    """2D float32 NRRD embedded in LPS (origin = pixel (0, 0) on the detector, one-pixel direction steps)."""
+def detector_ijk_to_lps(geometry, pose) -> np.ndarray:
+    """4x4 voxel (i, j, k) -> LPS mm of a detector image stored as a one-slice 3D volume.
+
+    i = column u, j = row v (0-based pixel centres), k = 0 the detector plane: column 0 is the LPS position of
+    detector pixel (0, 0); column 1 one pixel step along u (du mm, camera x); column 2 one pixel step along v
+    (dv mm, camera y); column 3 the slice normal, camera z (source -> detector) scaled to du mm, so the voxel
+    axes are right-handed (x cross y = z) and the slice has a thickness Slicer can show.
+    """
+    corners = pixel_to_detector_lps(geometry, pose, np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
+    step_u, step_v = corners[1] - corners[0], corners[2] - corners[0]
+    rotation, _ = geometry.extrinsics(pose)
+    ijk_to_lps = np.eye(4)
+    ijk_to_lps[:3, 0], ijk_to_lps[:3, 1] = step_u, step_v
+    ijk_to_lps[:3, 2] = rotation[2] * np.linalg.norm(step_u)  # camera z in LPS = third row of lps->camera R
+    ijk_to_lps[:3, 3] = corners[0]
+    return ijk_to_lps
+
+
+def write_detector_nrrd(path: str | Path, image: np.ndarray, geometry, pose, content: str,
+                        dtype=np.float32) -> Path:
+    """A detector image ``image[row, column]`` as a 3D one-slice NRRD in LPS (see ``detector_ijk_to_lps``).
+
+    3D Slicer's volume reader refuses a 2D image embedded in 3D space; the same pixels as a (columns, rows, 1)
+    volume load, in place on the detector plane in the CT's frame. The header also carries the 3x4
+    ``projection_matrix`` (LPS mm -> homogeneous (column, row) px) of the pose.
+    """
     import nrrd
 
-    corners = pixel_to_detector_lps(geometry, pose, np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
-    header = {"space": "left-posterior-superior", "space origin": corners[0],
-              "space directions": np.stack([corners[1] - corners[0], corners[2] - corners[0]]),
-              "kinds": ["domain", "domain"], "encoding": "gzip",
+    ijk_to_lps = detector_ijk_to_lps(geometry, pose)
+    header = {"space": "left-posterior-superior", "space origin": ijk_to_lps[:3, 3],
+              "space directions": ijk_to_lps[:3, :3].T.copy(), "kinds": ["domain", "domain", "domain"],
+              "encoding": "gzip",
               "projection_matrix": " ".join(f"{x:.9g}" for x in
                                             np.asarray(geometry.projection_matrix(pose)).ravel()),
-              "content": "CarmReg DRR line integral (dimensionless); axis 0 = column u, axis 1 = row v"}
-    data = np.ascontiguousarray(np.asarray(line_integral, np.float32).T)  # nrrd axis 0 fastest = columns
+              "content": content}
+    data = np.ascontiguousarray(np.asarray(image, dtype).T[:, :, None])  # nrrd axis 0 fastest = columns
     return atomic_write(path, lambda tmp: nrrd.write(str(tmp), data, header))
+
+
+def write_drr_nrrd(path: str | Path, line_integral: np.ndarray, geometry, pose) -> Path:
+    """The DRR's float32 line integrals on the detector plane (``write_detector_nrrd``)."""
+    return write_detector_nrrd(path, line_integral, geometry, pose,
+                               "CarmReg DRR line integral (dimensionless); axis 0 = column u, axis 1 = row v, "
+                               "axis 2 = one slice on the detector plane")
 
 
 def _figure_bytes(fig) -> bytes:
@@ -223,10 +257,18 @@ def similarity_figure(result) -> bytes:
     return data
 
 
+def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
+    """The registration's exposed field when it was of these pixels, else found again."""
+    mask = getattr(result, "field_mask", None)
+    return mask if mask is not None and mask.shape == np.shape(xray_pixels) else field_mask(xray_pixels)
+
+
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
-                bone_dark: bool = True) -> dict:
-    """Write every output file; returns {name: path}."""
-    from carmreg.logic.image.prepare import field_mask
+                ct=None, ct_landmarks=None) -> dict:
+    """Write every output file; returns {name: path}. ``xray_pixels``: the X-ray as stored (shown as stored).
+    Given the CT (``Volume``) and its ``Landmarks3D``, also the 3D Slicer scene ``slicer/CarmReg.mrml`` with its
+    files (``slicer_scene``)."""
+    from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
     out = Path(out_dir)
@@ -234,7 +276,7 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
                                                                     result.levels, clicked,
-                                                                    mask=field_mask(xray_pixels, bone_dark),
+                                                                    mask=_field(result, xray_pixels, field_mask),
                                                                     level_check=result.level_check))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
@@ -249,5 +291,8 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
     if result.similarity_maps:
         paths["similarity"] = atomic_write_bytes(out / "similarity_maps.png", similarity_figure(result))
     from carmreg.logic.report.page import write_report_pdf
-    paths["report"] = write_report_pdf(out / "report.pdf", result, xray_pixels, clicked, bone_dark)
+    paths["report"] = write_report_pdf(out / "report.pdf", result, xray_pixels, clicked)
+    if ct is not None and ct_landmarks is not None:
+        from carmreg.logic.report.slicer_scene import write_slicer_scene
+        paths.update(write_slicer_scene(out, result, ct, ct_landmarks, xray_pixels, clicked))
     return paths

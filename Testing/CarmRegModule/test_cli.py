@@ -18,7 +18,7 @@ def test_drr_writes_png_and_nrrd_whose_geometry_matches(sample_case_dir, tmp_pat
                  "--pixel-spacing-mm", "2.0", "--sod-mm", "600"])
     assert code == 0 and "wrote" in capsys.readouterr().out
     data, header = nrrd.read(str(tmp_path / "drr.nrrd"))
-    assert data.shape == (96, 80) and (tmp_path / "drr.png").stat().st_size > 0
+    assert data.shape == (96, 80, 1) and (tmp_path / "drr.png").stat().st_size > 0
     ct = load_volume(sample_case_dir / "ct.nrrd")
     geometry = CarmGeometry(CarmIntrinsics(1000.0, (2.0, 2.0), (96, 80)), tuple(ct.center_lps_mm()), 600.0)
     P = np.array([float(x) for x in header["projection_matrix"].split()]).reshape(3, 4)
@@ -31,6 +31,8 @@ def test_drr_writes_png_and_nrrd_whose_geometry_matches(sample_case_dir, tmp_pat
     uv = project(P, (source + 0.5 * (point - source))[None])[0]  # any point on that ray
     np.testing.assert_allclose(uv, [30, 50], atol=1e-6)
     assert 0.5 < data.mean() < 20  # line integrals of a body, dimensionless
+    normal = steps[2] / np.linalg.norm(steps[2])  # the one-slice axis: the detector normal, away from the source
+    assert np.dot(normal, point - source) > 0 and abs(np.dot(normal, steps[0])) < 1e-9
 
 
 @pytest.mark.slow

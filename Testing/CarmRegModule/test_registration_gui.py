@@ -49,7 +49,8 @@ def test_register_shows_every_ct_level_on_the_overlay_and_recovers_the_pose(wind
     # export through the logic
     paths = window.export_result(tmp_path / "out")
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
-    assert doc["ok"] is True and {"overlay", "tfm", "result"} <= set(paths)
+    assert doc["ok"] is True and {"overlay", "tfm", "result", "slicer_scene"} <= set(paths)
+    assert paths["slicer_scene"] == tmp_path / "out" / "slicer" / "CarmReg.mrml"
     assert window.current_session().last_result["out_dir"] == str(tmp_path / "out")
 
 

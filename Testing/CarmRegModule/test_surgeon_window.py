@@ -219,7 +219,7 @@ def test_progress_moves_inside_the_levels_stage_and_cancel_keeps_finished_stages
     from gui_case import FAST_PARAMETERS
 
     from carmreg.logic.registration.image_refine import RefineParameters
-    from carmreg.logic.registration.levels import coarse_refine_parameters
+    from carmreg.logic.registration.labelling_fit import coarse_refine_parameters
     from carmreg.worker import RegistrationWorker
 
     _load_case(window, synthetic_case)
@@ -240,8 +240,9 @@ def test_progress_moves_inside_the_levels_stage_and_cancel_keeps_finished_stages
     assert panel.next_button.text() == "Next: preparing the drr database"
     window.run_registration(wait=True)
     labelling = [m for s, f, m in seen if s == "levels" and m.startswith("labelling")]
-    assert len(labelling) == 2 and labelling[0].startswith("labelling 1 of 3: ")  # 3 runs of 3 of 5 levels
-    assert labelling[1].startswith("labelling 2 of 3: ")
+    # 3 runs of 3 clicks along 5 levels, and the leading two refitted from each other's pose: 5 fits
+    assert len(labelling) == 2 and labelling[0].startswith("labelling 1 of 5: ")
+    assert labelling[1].startswith("labelling 2 of 5: ")
     fractions = [f for s, f, m in seen if s == "levels"]
     assert 0.0 < max(fractions) < 1.0  # moved inside the stage, did not finish
     # cancelled inside the levels stage: database and spatial kept, Register continues from the levels

@@ -8,17 +8,16 @@ from carmreg.logic.errors import LandmarkError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D
 from carmreg.logic.io.xray import XrayImage
-from carmreg.logic.registration.levels import (
-    Hypothesis,
-    _decide,
+from carmreg.logic.registration.image_refine import RefineResult
+from carmreg.logic.registration.labelling_fit import LabellingFit
+from carmreg.logic.registration.labellings import (
     candidate_labellings,
-    central_level,
     implied_labels,
     order_along_spine,
     shifted_labels,
-    spatial_peaks,
-    visible_levels,
 )
+from carmreg.logic.registration.level_confidence import ConfidenceRule, decide, decide_image_only
+from carmreg.logic.registration.levels import central_level, spatial_peaks, visible_levels
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.simulation.evaluation import evaluate
 from carmreg.logic.simulation.simulator import (
@@ -72,21 +71,72 @@ def test_shifted_labels_stop_at_the_ends_of_the_ct():
     assert shifted_labels(["T12", "L1"], 1, CT_NAMES) is None
 
 
-def _h(labels, score):
-    return Hypothesis(labels, 0, np.zeros(6), score, 1.0 - score, 1.0, refined=True)
+def _h(labels, score, gc=None, mpde_mm=1.0, refined=True):
+    """A registered labelling with the given objective, image agreement (GC) and click mPDE."""
+    fit = LabellingFit(labels, 0, np.zeros((len(labels), 3)), np.zeros((len(labels), 2)))
+    if refined:
+        fit.refine = RefineResult(np.zeros(6), 0.0, 1.0 - score if gc is None else gc, mpde_mm, 1,
+                                  objective_end=score)
+    return fit
 
 
-def test_decision_confident_ambiguous_contradicted():
+RULE = ConfidenceRule()
+
+
+def test_decision_margin_confident_ambiguous_contradicted():
     a, b, c = _h(["T10"], 0.50), _h(["T11"], 0.60), _h(["T12"], 0.515)
-    status, margin, winner, runner = _decide([a, b], None, 0.02)
-    assert (status, winner, runner) == ("confident", a, b) and margin == pytest.approx(0.10)
-    assert _decide([a, c], None, 0.02)[0] == "ambiguous"
-    status, margin, winner, runner = _decide([a, b], b, 0.02)       # the surgeon named b; the image prefers a
-    assert (status, winner, runner) == ("contradicted", a, a) and margin == pytest.approx(-0.10)
-    assert _decide([a, c], c, 0.02)[0] == "ambiguous"
-    assert _decide([a, _h(["T9"], 0.9)], a, 0.02)[0] == "confident"
-    screened_only = Hypothesis(["T9"], 0, np.zeros(6), 0.1, 0.9, 1.0, refined=False)  # never wins unrefined
-    assert _decide([a, b, screened_only], None, 0.02)[2] is a
+    v = decide([a, b], None, RULE)
+    assert (v.status, v.winner, v.runner_up, v.reasons) == ("confident", a, b, []) and v.margin == pytest.approx(0.10)
+    assert decide([a, c], None, RULE).status == "ambiguous"
+    v = decide([a, b], b, RULE)       # the surgeon named b; the image prefers a
+    assert (v.status, v.winner, v.runner_up) == ("contradicted", a, a) and v.margin == pytest.approx(-0.10)
+    assert decide([a, c], c, RULE).status == "ambiguous"
+    assert decide([a, _h(["T9"], 0.9)], a, RULE).status == "confident"
+    screened_only = _h(["T9"], 0.1, refined=False)  # never wins unregistered
+    assert decide([a, b, screened_only], None, RULE).winner is a
+
+
+def test_poor_image_agreement_alone_makes_a_clear_lead_ambiguous():
+    """The same lead (0.10 > 0.02) is confident at GC 0.5 and ambiguous at GC 0.15 (< 0.20)."""
+    assert decide([_h(["T10"], 0.50, gc=0.50), _h(["T11"], 0.60)], None, RULE).status == "confident"
+    v = decide([_h(["T10"], 0.50, gc=0.15), _h(["T11"], 0.60)], None, RULE)
+    assert v.status == "ambiguous" and "agrees poorly" in v.reasons[0]
+    assert not v.checks["image_agreement"]["ok"] and v.checks["stability"]["ok"]
+    # a contradiction also needs an image that agrees with the labelling it prefers
+    named = _h(["T11"], 0.60)
+    assert decide([_h(["T10"], 0.50, gc=0.50), named], named, RULE).status == "contradicted"
+    assert decide([_h(["T10"], 0.50, gc=0.15), named], named, RULE).status == "ambiguous"
+
+
+def test_a_winner_the_clicks_fit_clearly_worse_is_never_confident():
+    """The issue's case: GC 0.364 against 0.316 (margin 0.048) while the clicks fit 3.19 mm against 1.66 mm."""
+    wrong, right = _h(["T9"], 0.636 + 0.01, gc=0.364, mpde_mm=3.19), _h(["T10"], 0.684 + 0.01, gc=0.316,
+                                                                     mpde_mm=1.66)
+    v = decide([wrong, right], None, RULE)
+    assert v.margin >= RULE.margin and v.status == "ambiguous" and "clearly worse" in v.reasons[0]
+    assert v.checks["landmark_fit"]["limit_mm"] == pytest.approx(1.5 * 1.66 + 0.5)
+    # the same lead with a landmark fit within the limit (2.9 mm <= 2.99 mm) stays confident
+    wrong.refine.mpde_mm = 2.9
+    assert decide([wrong, right], None, RULE).status == "confident"
+    # and the surgeon's right names are not contradicted by a labelling the clicks fit clearly worse
+    wrong.refine.mpde_mm = 3.19
+    assert decide([wrong, right], right, RULE).status == "ambiguous"
+
+
+def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous():
+    a, b = _h(["T10"], 0.50), _h(["T11"], 0.60)
+    v = decide([a, b], None, RULE, stable=False)
+    assert v.status == "ambiguous" and "refitted" in v.reasons[0] and not v.checks["stability"]["ok"]
+    v = decide([a, b], None, RULE, polarity_clear=False)
+    assert v.status == "ambiguous" and "polarity" in v.reasons[0]
+    assert decide([a, b], b, RULE, polarity_clear=False).status == "ambiguous"  # no contradiction either
+
+
+def test_image_only_answers_are_at_best_proposed():
+    a, b = _h([], 0.50), _h([], 0.60)
+    assert decide_image_only([a, b], RULE).status == "proposed"
+    assert decide_image_only([a, _h([], 0.51)], RULE).status == "ambiguous"
+    assert decide_image_only([a, b], RULE, polarity_clear=False).status == "ambiguous"
 
 
 def test_spatial_peaks_are_separated_local_maxima_best_first():

@@ -215,7 +215,7 @@ def test_png16_round_trip_and_manual_geometry(tmp_path, pixels):
     image = load_xray(path, sdd_mm=1000.0, pixel_spacing_mm=(0.3, 0.25))
     np.testing.assert_array_equal(image.pixels, pixels)
     assert image.intrinsics.pixel_spacing_mm == (0.3, 0.25) and image.sources["sdd_mm"] == "manual"
-    assert image.bone_dark is True and "default for PNG/TIFF" in image.sources["bone_dark"]
+    assert image.bone_dark is True and "no polarity in PNG/TIFF/JPEG" in image.sources["bone_dark"]
     assert [p.name for p in tmp_path.iterdir()] == ["x.png"]  # atomic: no temp file left
     bare = load_xray(path)
     assert bare.intrinsics is None

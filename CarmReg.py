@@ -1,0 +1,736 @@
+"""CarmReg as a 3D Slicer scripted module: ``CarmReg`` (ScriptedLoadableModule), ``CarmRegWidget``,
+``CarmRegLogic``, ``CarmRegTest``, in the shape of Slicer's template (Utilities/Templates/Modules/Scripted).
+
+Where Slicer finds it
+---------------------
+Slicer takes every ``*.py`` at the top of a module path for a module, and imports it as a *top-level* module (no
+relative imports here). This file is the only ``*.py`` at the top of the repository, so the repository folder is
+the module folder: add it to Edit > Application Settings > Modules > Additional module paths, or build the
+extension (``CMakeLists.txt``), which installs this file with ``CarmRegModule/``, ``Logic/`` and ``Resources/``
+beside it. Its icon is ``Resources/Icons/CarmReg.png`` (found by ScriptedLoadableModule).
+
+How ``carmreg`` becomes importable inside Slicer
+------------------------------------------------
+``import_carmreg()`` loads the packages from the folders beside this file with the mapping of pyproject.toml
+(``carmreg`` = CarmRegModule/, ``carmreg.logic`` = Logic/, ``carmreg.resources`` = Resources/), so Slicer runs
+the code this module ships with; nothing is pip-installed for CarmReg itself. The Python packages Slicer lacks
+(numba, cma, nibabel, ...: ``Resources/requirements.txt``, pyproject's list without vtk) are installed on first
+use with ``slicer.packaging.pip_ensure`` (``slicer.util.pip_install`` on Slicer versions without it); never vtk
+or a Qt binding. The registration runs in ``carmreg.logic`` (no Qt); the desktop application (PySide6) is not
+used inside Slicer.
+
+What lives where
+----------------
+The functions at module level convert between MRML nodes and CarmReg's objects and need only VTK and numpy, so
+the tests run them against ``slicer-core``'s real MRML nodes outside Slicer. The classes need Slicer's
+application (``slicer.ScriptedLoadableModule``, qt, ctk): imported elsewhere, their bases are ``_NeedsSlicer``,
+which refuses to be instantiated.
+
+Frames: Slicer's world is RAS; CarmReg's is the CT's LPS (RAS = diag(-1, -1, 1) LPS). The X-ray volume's voxel
+(i, j, 0) is detector pixel (u, v) = (column, row); the DRR, the overlay and the projected levels are laid on the
+X-ray volume's grid (so they line up with it in the slice views), the C-arm transform maps the camera frame to
+the CT's RAS (its translation is the X-ray source).
+"""
+
+import importlib.util
+import os
+import sys
+
+MODULE_DIR = os.path.dirname(os.path.abspath(__file__))
+PACKAGE_DIRS = {"carmreg": "CarmRegModule", "carmreg.logic": "Logic", "carmreg.resources": "Resources"}
+"""pyproject.toml's [tool.setuptools.package-dir]: the import root over the design's top-level folders."""
+LPS_TO_RAS_4 = ((-1.0, 0, 0, 0), (0, -1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
+
+# Parameter node: node references (role -> MRML class) and parameters (name -> default, as text)
+NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiducialNode",
+              "Xray": "vtkMRMLScalarVolumeNode", "XrayPoints": "vtkMRMLMarkupsFiducialNode",
+              "CarmTransform": "vtkMRMLLinearTransformNode", "DRR": "vtkMRMLScalarVolumeNode",
+              "Overlay": "vtkMRMLVectorVolumeNode", "ProjectedLevels": "vtkMRMLMarkupsFiducialNode"}
+OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
+DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "Metric": "gc", "CheckLevels": "true"}
+"""0 = take the value from the X-ray file (DICOM tags) or CarmReg's default."""
+METRICS = ("gc", "go", "ncc", "gi", "mi", "psnr", "ssim")
+FORBIDDEN_IN_SLICER = ("vtk", "pyside6", "pyside6-essentials", "pyqt5", "pyqt6", "qtpy")
+
+try:
+    from slicer.ScriptedLoadableModule import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
+
+    IN_SLICER = True
+except ImportError:  # outside 3D Slicer (tests, documentation; slicer-core has no ScriptedLoadableModule)
+    IN_SLICER = False
+
+    class _NeedsSlicer:
+        """Base of the module's classes outside 3D Slicer: they can be inspected, not run."""
+
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError(f"{type(self).__name__} runs inside 3D Slicer only; outside it use the carmreg "
+                               "command line or desktop application")
+
+    ScriptedLoadableModule = ScriptedLoadableModuleWidget = ScriptedLoadableModuleLogic = _NeedsSlicer
+    ScriptedLoadableModuleTest = _NeedsSlicer
+
+
+# ------------------------------------------------------------------------------------------ import and set-up
+
+def import_carmreg(root=MODULE_DIR):
+    """Make ``carmreg`` importable from the folders beside this file (PACKAGE_DIRS) and return it.
+
+    Keeps an already imported ``carmreg`` (e.g. pip-installed and imported first). The three package modules
+    are registered before any of them runs, so their imports of each other resolve.
+    """
+    if "carmreg" in sys.modules:
+        return sys.modules["carmreg"]
+    modules = []
+    for name, folder in PACKAGE_DIRS.items():
+        path = os.path.join(root, folder)
+        spec = importlib.util.spec_from_file_location(name, os.path.join(path, "__init__.py"),
+                                                      submodule_search_locations=[path])
+        if spec is None or not os.path.isfile(spec.origin):
+            raise ImportError(f"CarmReg: {path} is missing from the module folder {root}; reinstall the module")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        parent, _, child = name.rpartition(".")
+        if parent:
+            setattr(sys.modules[parent], child, module)
+        modules.append((spec, module))
+    for spec, module in modules:
+        spec.loader.exec_module(module)
+    return sys.modules["carmreg"]
+
+
+def read_requirements(path):
+    """Requirement lines of a requirements.txt (no comments, blanks or pip options)."""
+    with open(path, encoding="utf-8") as f:
+        lines = (line.split("#", 1)[0].strip() for line in f)
+        return [line for line in lines if line and not line.startswith("-")]
+
+
+def requirement_name(requirement):
+    """The distribution name of a requirement line ("pylibjpeg-libjpeg>=2.1" -> "pylibjpeg-libjpeg")."""
+    for i, ch in enumerate(requirement):
+        if ch in "<>=!~;[ (":
+            return requirement[:i].strip()
+    return requirement.strip()
+
+
+def missing_requirements(requirements):
+    """The requirements whose distribution is not installed (version bounds are pip_ensure's business)."""
+    from importlib import metadata
+
+    missing = []
+    for requirement in requirements:
+        try:
+            metadata.version(requirement_name(requirement))
+        except metadata.PackageNotFoundError:
+            missing.append(requirement)
+    return missing
+
+
+def ensure_python_dependencies(requirements_path=None):
+    """Inside Slicer: install the packages of ``Resources/requirements.txt`` that are missing (asks first)."""
+    import slicer
+
+    path = requirements_path or os.path.join(MODULE_DIR, "Resources", "requirements.txt")
+    requirements = read_requirements(path)
+    forbidden = [r for r in requirements if requirement_name(r).lower() in FORBIDDEN_IN_SLICER]
+    if forbidden:
+        raise RuntimeError(f"CarmReg: {path} lists {', '.join(forbidden)}; Slicer's own VTK and Qt must never "
+                           "be replaced: remove them from the file")
+    try:
+        import slicer.packaging as packaging
+    except ImportError:
+        packaging = None
+    if packaging is not None and hasattr(packaging, "pip_ensure"):
+        packaging.pip_ensure(requirements, requester="CarmReg", skip_in_testing=False)
+        return
+    missing = missing_requirements(requirements)
+    if missing:
+        slicer.util.pip_install(" ".join(f'"{r}"' for r in missing))
+
+
+# ------------------------------------------------------------------------------- MRML <-> CarmReg (VTK, numpy)
+
+def _np():
+    import numpy as np
+
+    return np
+
+
+def matrix_to_numpy(vtk_matrix):
+    np = _np()
+    return np.array([[vtk_matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+
+
+def numpy_to_matrix(array):
+    import vtk
+
+    m = vtk.vtkMatrix4x4()
+    for i in range(4):
+        for j in range(4):
+            m.SetElement(i, j, float(array[i][j]))
+    return m
+
+
+def ijk_to_ras(volume_node):
+    """4x4 IJK -> RAS of a volume node (its own geometry; a parent transform is not applied)."""
+    import vtk
+
+    m = vtk.vtkMatrix4x4()
+    volume_node.GetIJKToRASMatrix(m)
+    return matrix_to_numpy(m)
+
+
+def voxels_kji(volume_node):
+    """A copy of the volume's voxels indexed [k, j, i] (numpy order of VTK image data)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    image = volume_node.GetImageData()
+    if image is None:
+        raise ValueError(f"volume '{volume_node.GetName()}' has no image data")
+    nx, ny, nz = image.GetDimensions()
+    scalars = vtk_to_numpy(image.GetPointData().GetScalars())
+    components = image.GetNumberOfScalarComponents()
+    shape = (nz, ny, nx) if components == 1 else (nz, ny, nx, components)
+    return scalars.reshape(shape).copy()
+
+
+def ct_from_node(volume_node):
+    """The CT volume node as CarmReg's ``Volume`` (HU [i, j, k], ijk_to_lps = diag(-1, -1, 1, 1) IJKToRAS)."""
+    np = _np()
+    from carmreg.logic.geometry.volume import Volume
+
+    lps = np.asarray(LPS_TO_RAS_4) @ ijk_to_ras(volume_node)
+    return Volume(np.ascontiguousarray(voxels_kji(volume_node).transpose(2, 1, 0)), lps,
+                  f"Slicer volume '{volume_node.GetName()}'")
+
+
+def _control_points_ras(markups_node):
+    np = _np()
+    n = markups_node.GetNumberOfControlPoints()
+    labels = [markups_node.GetNthControlPointLabel(i) for i in range(n)]
+    return labels, np.array([markups_node.GetNthControlPointPositionWorld(i) for i in range(n)]).reshape(-1, 3)
+
+
+def ct_points_from_node(markups_node):
+    """The CT centroids (labels = level names) as ``Landmarks3D`` in LPS mm."""
+    np = _np()
+    from carmreg.logic.io.landmarks import Landmarks3D
+
+    labels, ras = _control_points_ras(markups_node)
+    return Landmarks3D(labels, ras * [-1.0, -1.0, 1.0], f"Slicer markups '{markups_node.GetName()}'") \
+        if len(labels) else Landmarks3D([], np.zeros((0, 3)), markups_node.GetName())
+
+
+def xray_points_from_node(markups_node, xray_node):
+    """Clicks on the X-ray volume as ``Landmarks2D``: (u, v) = (i, j) of each point's RAS in the X-ray's IJK.
+
+    An empty label is an unnamed click."""
+    np = _np()
+    from carmreg.logic.io.landmarks import Landmarks2D
+
+    labels, ras = _control_points_ras(markups_node)
+    ras_to_ijk = np.linalg.inv(ijk_to_ras(xray_node))
+    ijk = (ras_to_ijk @ np.c_[ras, np.ones(len(ras))].T).T[:, :3] if len(ras) else np.zeros((0, 3))
+    return Landmarks2D([lb or None for lb in labels], ijk[:, :2], f"Slicer markups '{markups_node.GetName()}'")
+
+
+def _storage_file(node):
+    storage = node.GetStorageNode()
+    path = storage.GetFileName() if storage is not None else None
+    return path if path and os.path.isfile(path) else None
+
+
+def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0):
+    """The X-ray as ``XrayImage``. Loaded from a file: ``load_xray`` on it (DICOM geometry tags), with the
+    non-zero values given overriding; else its pixels with the given geometry (pixel spacing default: the
+    volume's spacing)."""
+    np = _np()
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.io.xray import XrayImage, load_xray
+
+    voxels = voxels_kji(xray_node)
+    if voxels.ndim != 3 or voxels.shape[0] != 1:
+        raise ValueError(f"X-ray '{xray_node.GetName()}' must be a single 2D image (one slice, one component), "
+                         f"got voxels {voxels.shape}")
+    path = _storage_file(xray_node)
+    overrides = {"sdd_mm": sdd_mm or None, "pixel_spacing_mm": pixel_spacing_mm or None, "sod_mm": sod_mm or None}
+    if path is not None:
+        xray = load_xray(path, **overrides)
+        if xray.pixels.shape == voxels.shape[1:]:
+            return xray
+    spacing = pixel_spacing_mm or float(xray_node.GetSpacing()[0])
+    rows, cols = voxels.shape[1:]
+    intrinsics = CarmIntrinsics(float(sdd_mm or 1000.0), (spacing, spacing), (cols, rows), None,
+                                {"sdd_mm": "manual" if sdd_mm else "default"})
+    return XrayImage(np.asarray(voxels[0], np.float32), intrinsics, sod_mm or None, True,
+                     f"Slicer volume '{xray_node.GetName()}'")
+
+
+def set_transform(transform_node, result):
+    """The C-arm transform: to-parent = camera frame (x, y flipped, as Slicer reads LPS files) -> CT RAS,
+    i.e. F inv(lps_to_camera) F with F = diag(-1, -1, 1, 1) - what Slicer makes of ``carm.tfm``."""
+    np = _np()
+    rotation, t = result.geometry.extrinsics(result.pose)
+    lps_to_camera = np.eye(4)
+    lps_to_camera[:3, :3], lps_to_camera[:3, 3] = rotation, t
+    f = np.asarray(LPS_TO_RAS_4)
+    transform_node.SetMatrixTransformToParent(numpy_to_matrix(f @ np.linalg.inv(lps_to_camera) @ f))
+
+
+def set_image_on_xray_grid(volume_node, image, xray_node):
+    """Put ``image[row, column]`` (scalar, or (rows, cols, 3) RGB uint8) into a volume node on the X-ray's grid
+    (voxel (u, v, 0) = pixel (u, v) of the X-ray)."""
+    import vtk
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+
+    np = _np()
+    array = np.ascontiguousarray(image)
+    rows, cols = array.shape[:2]
+    components = 1 if array.ndim == 2 else array.shape[2]
+    vtk_image = vtk.vtkImageData()
+    vtk_image.SetDimensions(cols, rows, 1)
+    vtk_image.GetPointData().SetScalars(numpy_to_vtk(array.reshape(rows * cols, components) if components > 1
+                                                     else array.ravel(), deep=True))
+    volume_node.SetAndObserveImageData(vtk_image)
+    volume_node.SetIJKToRASMatrix(numpy_to_matrix(ijk_to_ras(xray_node)))
+    if volume_node.GetDisplayNode() is None:
+        volume_node.CreateDefaultDisplayNodes()
+
+
+def set_projected_levels(markups_node, result, xray_node):
+    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0))."""
+    np = _np()
+    markups_node.RemoveAllControlPoints()
+    matrix = ijk_to_ras(xray_node)
+    for level in result.levels:
+        u, v = level["uv_px"]
+        ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
+        index = markups_node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]), level["label"])
+        markups_node.SetNthControlPointDescription(
+            index, ("fitted" if level["fitted"] else "not fitted")
+            + (f", PDE {level['pde_mm']:.2f} mm" if level.get("pde_mm") is not None else ""))
+    markups_node.SetLocked(True)
+
+
+def overlay_rgb(result, xray):
+    """The overlay image (X-ray, DRR bone in cyan, named levels, level banner) as (rows, cols, 3) uint8."""
+    np = _np()
+    from carmreg.logic.report.result_files import overlay_image
+
+    clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
+    image = overlay_image(xray.pixels, result.drr_line_integral, result.levels, clicked,
+                          mask=result.field_mask, level_check=result.level_check)
+    return np.asarray(image.convert("RGB"), np.uint8)
+
+
+def set_default_parameters(parameter_node):
+    """Fill the parameters the node lacks with DEFAULT_PARAMETERS."""
+    for name, value in DEFAULT_PARAMETERS.items():
+        if not parameter_node.GetParameter(name):
+            parameter_node.SetParameter(name, value)
+
+
+def parameters_from_node(parameter_node):
+    """The registration settings of a parameter node: (sdd_mm, pixel_spacing_mm, sod_mm, metric, check_levels)."""
+    def number(name):
+        text = parameter_node.GetParameter(name) or "0"
+        try:
+            return max(0.0, float(text))
+        except ValueError:
+            raise ValueError(f"CarmReg parameter {name} = {text!r} is not a number; set it in the module panel") \
+                from None
+
+    metric = parameter_node.GetParameter("Metric") or "gc"
+    if metric not in METRICS:
+        raise ValueError(f"CarmReg parameter Metric = {metric!r}; choose one of {', '.join(METRICS)}")
+    return (number("SddMm"), number("PixelSpacingMm"), number("SodMm"), metric,
+            (parameter_node.GetParameter("CheckLevels") or "true") == "true")
+
+
+def output_node(scene, parameter_node, role):
+    """The output node the parameter node references for ``role``, created (and referenced) when absent."""
+    node = parameter_node.GetNodeReference(role)
+    if node is None:
+        node = scene.AddNewNodeByClass(NODE_ROLES[role], OUTPUT_NAMES[role])
+        parameter_node.SetNodeReferenceID(role, node.GetID())
+    return node
+
+
+def register_nodes(parameter_node, logic=None, cache_dir=None):
+    """Register the parameter node's CT, CT points, X-ray and X-ray clicks with ``logic`` (a
+    ``carmreg.logic`` CarmRegLogic: progress, cancel); returns (result, ct, ct_landmarks, xray). Raises
+    CarmReg's errors (one clear line) on bad input."""
+    import_carmreg()
+    from carmreg.logic.registration import pipeline
+
+    nodes = {role: parameter_node.GetNodeReference(role) for role in ("CT", "CTPoints", "Xray", "XrayPoints")}
+    missing = [role for role in ("CT", "CTPoints", "Xray") if nodes[role] is None]
+    if missing:
+        raise ValueError(f"CarmReg: select the {', '.join(missing)} input(s) first")
+    sdd_mm, spacing_mm, sod_mm, metric, check_levels = parameters_from_node(parameter_node)
+    ct = ct_from_node(nodes["CT"])
+    ct_landmarks = ct_points_from_node(nodes["CTPoints"])
+    xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm)
+    clicks = xray_points_from_node(nodes["XrayPoints"], nodes["Xray"]) if nodes["XrayPoints"] else None
+    params = pipeline.RegistrationParameters(metric=metric, level_check=check_levels, cache_dir=cache_dir)
+    result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)
+    return result, ct, ct_landmarks, xray
+
+
+def show_result(scene, parameter_node, result, xray):
+    """Write a result into the output nodes (created when absent): C-arm transform, DRR and overlay volumes
+    on the X-ray's grid, projected named levels."""
+    xray_node = parameter_node.GetNodeReference("Xray")
+    set_transform(output_node(scene, parameter_node, "CarmTransform"), result)
+    if result.drr_line_integral is not None:
+        set_image_on_xray_grid(output_node(scene, parameter_node, "DRR"), result.drr_line_integral, xray_node)
+        set_image_on_xray_grid(output_node(scene, parameter_node, "Overlay"), overlay_rgb(result, xray), xray_node)
+    set_projected_levels(output_node(scene, parameter_node, "ProjectedLevels"), result, xray_node)
+
+
+def result_summary(result):
+    """A few lines for the panel: status, the level answer, mPDE per stage."""
+    from carmreg.logic.report.result_files import level_banner
+
+    lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.warnings)]
+    banner = level_banner(result.level_check)
+    if banner:
+        lines.append(banner[0])
+    lines += [f"{s.name}: mPDE {s.mpde_mm:.2f} mm, {s.seconds:.1f} s" for s in result.stages
+              if s.mpde_mm is not None]
+    fitted = [f"{lv['label']} {lv['pde_mm']:.2f} mm" for lv in result.levels if lv.get("pde_mm") is not None]
+    if fitted:
+        lines.append("PDE per clicked level: " + ", ".join(fitted))
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ the Slicer module
+
+class CarmReg(ScriptedLoadableModule):
+    """Module description (texts from ``carmreg.about``, shared with the desktop application)."""
+
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        import_carmreg()
+        about = importlib.import_module("carmreg.about")
+        self.parent.title = about.TITLE
+        self.parent.categories = list(about.CATEGORIES)
+        self.parent.dependencies = []
+        self.parent.contributors = list(about.CONTRIBUTORS)
+        self.parent.helpText = about.HELP_TEXT
+        self.parent.acknowledgementText = about.ACKNOWLEDGEMENT_TEXT
+
+
+class CarmRegWidget(ScriptedLoadableModuleWidget):
+    """The panel: inputs (CT, CT points, X-ray, X-ray clicks), C-arm geometry, registration, outputs. State lives
+    in the parameter node; errors become a dialog (``slicer.util.tryWithErrorDisplay``)."""
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        self.logic = None
+        self._parameterNode = None
+        self._observer = None
+        self._updating = False
+
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        self.logic = CarmRegLogic()
+        self.ui = self._build_panel()
+        import slicer
+
+        self._scene_observers = [slicer.mrmlScene.AddObserver(slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)]
+        self.setParameterNode(self.logic.getParameterNode())
+
+    def _node_selector(self, form, role, label, none_enabled=True, add_enabled=False):
+        import slicer
+
+        selector = slicer.qMRMLNodeComboBox()
+        selector.nodeTypes = [NODE_ROLES[role]]
+        selector.noneEnabled, selector.addEnabled, selector.removeEnabled = none_enabled, add_enabled, False
+        selector.renameEnabled = add_enabled
+        selector.setMRMLScene(slicer.mrmlScene)
+        selector.connect("currentNodeChanged(vtkMRMLNode*)", self.updateParameterNodeFromGUI)
+        form.addRow(label, selector)
+        return selector
+
+    def _spin_box(self, form, label, suffix, maximum, tooltip):
+        import ctk
+
+        box = ctk.ctkDoubleSpinBox()
+        box.decimals, box.minimum, box.maximum, box.suffix = 3, 0.0, maximum, suffix
+        box.toolTip = tooltip
+        box.connect("valueChanged(double)", self.updateParameterNodeFromGUI)
+        form.addRow(label, box)
+        return box
+
+    def _build_panel(self):
+        import ctk
+        import qt
+
+        ui = type("Panel", (), {})()
+        sections = {}
+        for key, title in (("inputs", "Inputs"), ("geometry", "C-arm geometry"), ("register", "Registration"),
+                           ("outputs", "Outputs")):
+            button = ctk.ctkCollapsibleButton()
+            button.text = title
+            self.layout.addWidget(button)
+            sections[key] = qt.QFormLayout(button)
+        form = sections["inputs"]
+        ui.loadSample = qt.QPushButton("Load the sample case")
+        ui.loadSample.toolTip = "CT, CT centroids, simulated X-ray and its clicks shipped with CarmReg"
+        form.addRow(ui.loadSample)
+        ui.ct = self._node_selector(form, "CT", "CT volume:")
+        ui.ctPoints = self._node_selector(form, "CTPoints", "CT centroids:")
+        ui.xray = self._node_selector(form, "Xray", "X-ray:")
+        ui.xrayPoints = self._node_selector(form, "XrayPoints", "X-ray clicks (optional):")
+        form = sections["geometry"]
+        ui.sdd = self._spin_box(form, "Source to detector:", " mm", 3000.0, "0 = from the DICOM file or 1000 mm")
+        ui.spacing = self._spin_box(form, "Detector pixel spacing:", " mm", 10.0, "0 = from the file / volume")
+        ui.sod = self._spin_box(form, "Source to isocentre:", " mm", 3000.0, "0 = from the DICOM file or 0.6 SDD")
+        form = sections["register"]
+        ui.metric = qt.QComboBox()
+        ui.metric.addItems(list(METRICS))
+        ui.metric.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
+        form.addRow("Similarity metric:", ui.metric)
+        ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
+        ui.checkLevels.connect("toggled(bool)", self.updateParameterNodeFromGUI)
+        form.addRow(ui.checkLevels)
+        ui.apply = qt.QPushButton("Register")
+        ui.cancel = qt.QPushButton("Cancel")
+        ui.progress = qt.QProgressBar()
+        form.addRow(ui.apply)
+        form.addRow(ui.progress, ui.cancel)
+        ui.summary = qt.QLabel("")
+        ui.summary.wordWrap = True
+        form.addRow(ui.summary)
+        form = sections["outputs"]
+        ui.carm = self._node_selector(form, "CarmTransform", "C-arm transform:", add_enabled=True)
+        ui.drr = self._node_selector(form, "DRR", "DRR volume:", add_enabled=True)
+        ui.overlay = self._node_selector(form, "Overlay", "Overlay volume:", add_enabled=True)
+        ui.levels = self._node_selector(form, "ProjectedLevels", "Projected levels:", add_enabled=True)
+        ui.export = qt.QPushButton("Save result files and Slicer scene...")
+        form.addRow(ui.export)
+        self.layout.addStretch(1)
+        ui.loadSample.connect("clicked(bool)", self.onLoadSample)
+        ui.apply.connect("clicked(bool)", self.onApplyButton)
+        ui.cancel.connect("clicked(bool)", lambda checked=False: self.logic.cancel())
+        ui.export.connect("clicked(bool)", self.onExport)
+        return ui
+
+    # parameter node <-> GUI
+    def setParameterNode(self, node):
+        import vtk
+
+        if self._parameterNode is not None and self._observer is not None:
+            self._parameterNode.RemoveObserver(self._observer)
+        self._parameterNode, self._observer = node, None
+        if node is not None:
+            set_default_parameters(node)
+            self._observer = node.AddObserver(vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
+        self.updateGUIFromParameterNode()
+
+    def _selectors(self):
+        ui = self.ui
+        return {"CT": ui.ct, "CTPoints": ui.ctPoints, "Xray": ui.xray, "XrayPoints": ui.xrayPoints,
+                "CarmTransform": ui.carm, "DRR": ui.drr, "Overlay": ui.overlay, "ProjectedLevels": ui.levels}
+
+    def updateGUIFromParameterNode(self, caller=None, event=None):
+        node = self._parameterNode
+        if node is None or self._updating:
+            return
+        self._updating = True
+        try:
+            for role, selector in self._selectors().items():
+                selector.setCurrentNode(node.GetNodeReference(role))
+            self.ui.sdd.value = float(node.GetParameter("SddMm") or 0)
+            self.ui.spacing.value = float(node.GetParameter("PixelSpacingMm") or 0)
+            self.ui.sod.value = float(node.GetParameter("SodMm") or 0)
+            self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
+            self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
+            ready = all(node.GetNodeReference(r) for r in ("CT", "CTPoints", "Xray"))
+            self.ui.apply.enabled = ready
+            self.ui.apply.toolTip = "Register the CT to the X-ray" if ready else "Select CT, CT centroids and X-ray"
+        finally:
+            self._updating = False
+
+    def updateParameterNodeFromGUI(self, *args):
+        node = self._parameterNode
+        if node is None or self._updating:
+            return
+        was_modified = node.StartModify()
+        for role, selector in self._selectors().items():
+            node.SetNodeReferenceID(role, selector.currentNodeID)
+        node.SetParameter("SddMm", f"{self.ui.sdd.value:g}")
+        node.SetParameter("PixelSpacingMm", f"{self.ui.spacing.value:g}")
+        node.SetParameter("SodMm", f"{self.ui.sod.value:g}")
+        node.SetParameter("Metric", self.ui.metric.currentText)
+        node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")
+        node.EndModify(was_modified)
+
+    def enter(self):
+        self.setParameterNode(self.logic.getParameterNode())
+
+    def exit(self):
+        self.setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.setParameterNode(self.logic.getParameterNode())
+
+    def cleanup(self):
+        import slicer
+
+        self.setParameterNode(None)
+        for tag in getattr(self, "_scene_observers", []):
+            slicer.mrmlScene.RemoveObserver(tag)
+
+    # actions
+    def onLoadSample(self):
+        import slicer
+
+        with slicer.util.tryWithErrorDisplay("Failed to load the sample case.", waitCursor=True):
+            self.logic.loadSampleCase(self._parameterNode)
+
+    def onApplyButton(self):
+        import slicer
+
+        with slicer.util.tryWithErrorDisplay("Registration failed.", waitCursor=True):
+            def progress(stage, fraction, message=""):
+                self.ui.progress.value = int(100 * fraction)
+                self.ui.progress.format = f"{stage}: %p%"
+                slicer.app.processEvents()
+
+            self.logic.progress = progress
+            result = self.logic.process(self._parameterNode)
+            self.ui.summary.text = result_summary(result)
+            slicer.util.setSliceViewerLayers(background=self._parameterNode.GetNodeReference("Xray"),
+                                             foreground=self._parameterNode.GetNodeReference("DRR"),
+                                             foregroundOpacity=0.5, fit=True)
+
+    def onExport(self):
+        import qt
+        import slicer
+
+        folder = qt.QFileDialog.getExistingDirectory(self.parent, "Folder for the result files")
+        if folder:
+            with slicer.util.tryWithErrorDisplay("Saving the result failed.", waitCursor=True):
+                paths = self.logic.saveResult(folder)
+                slicer.util.infoDisplay(f"Wrote {len(paths)} files to {folder}; the Slicer scene is "
+                                        f"{paths.get('slicer_scene')}")
+
+
+class CarmRegLogic(ScriptedLoadableModuleLogic):
+    """Registration on MRML nodes through ``carmreg.logic`` (no Qt): ``process(parameterNode)``; progress and
+    cancel are attributes, as in SlicerElastix."""
+
+    def __init__(self):
+        ScriptedLoadableModuleLogic.__init__(self)
+        self.progress = None
+        self._pipeline = None
+        self.last = None  # (result, ct, ct_landmarks, xray) of the last registration
+
+    def cancel(self):
+        if self._pipeline is not None:
+            self._pipeline.cancel()
+
+    def getParameterNode(self):
+        node = ScriptedLoadableModuleLogic.getParameterNode(self)
+        set_default_parameters(node)
+        return node
+
+    def loadSampleCase(self, parameterNode=None):
+        """Load CarmReg's sample case as MRML nodes and select them; returns {role: node}."""
+        import slicer
+
+        ensure_python_dependencies()
+        import_carmreg()
+        from carmreg.logic.resources import sample_case
+
+        paths = sample_case()
+        nodes = {"CT": slicer.util.loadVolume(str(paths["ct"]), {"name": "CT"}),
+                 "CTPoints": slicer.util.loadMarkups(str(paths["ct_landmarks"])),
+                 "Xray": slicer.util.loadVolume(str(paths["xray"]), {"name": "X-ray", "singleFile": True}),
+                 "XrayPoints": None}
+        nodes["XrayPoints"] = self._clicks_on_volume(paths["xray_landmarks"], nodes["Xray"])
+        parameterNode = parameterNode or self.getParameterNode()
+        for role, node in nodes.items():
+            parameterNode.SetNodeReferenceID(role, node.GetID())
+        return nodes
+
+    @staticmethod
+    def _clicks_on_volume(path, xray_node):
+        """X-ray clicks of a CarmReg .mrk.json placed on the X-ray volume (RAS of voxel (u, v, 0))."""
+        import slicer
+
+        np = _np()
+        from carmreg.logic.io.landmarks import read_landmarks_2d
+
+        clicks = read_landmarks_2d(path)
+        node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "X-ray clicks")
+        matrix = ijk_to_ras(xray_node)
+        for label, (u, v) in zip(clicks.labels, clicks.uv_px, strict=True):
+            ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
+            node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]), label or "")
+        return node
+
+    def process(self, parameterNode):
+        """Register (installing missing Python packages first), show the result in the output nodes; returns
+        CarmReg's RegistrationResult."""
+        import slicer
+
+        ensure_python_dependencies()
+        import_carmreg()
+        from carmreg.logic.registration import pipeline
+
+        self._pipeline = pipeline.CarmRegLogic(progress=self.progress)
+        try:
+            self.last = register_nodes(parameterNode, self._pipeline)
+        finally:
+            self._pipeline = None
+        show_result(slicer.mrmlScene, parameterNode, self.last[0], self.last[3])
+        return self.last[0]
+
+    def saveResult(self, folder):
+        """CarmReg's result files and the Slicer scene (``slicer/CarmReg.mrml``) of the last registration."""
+        if self.last is None:
+            raise ValueError("CarmReg: there is no result to save yet; click Register first")
+        from carmreg.logic.report.result_files import save_result
+
+        result, ct, ct_landmarks, xray = self.last
+        return save_result(result, folder, xray.pixels, None, ct=ct, ct_landmarks=ct_landmarks)
+
+
+class CarmRegTest(ScriptedLoadableModuleTest):
+    """Self-test (Slicer's SelfTests and ctest): the sample case loaded as MRML nodes, registered through the
+    module's logic; every clicked level within 5 mm PDE, outputs in the scene."""
+
+    def setUp(self):
+        import slicer
+
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        self.setUp()
+        self.test_sample_case()
+
+    def test_sample_case(self):
+        self.delayDisplay("Loading the sample case")
+        logic = CarmRegLogic()
+        parameterNode = logic.getParameterNode()
+        logic.loadSampleCase(parameterNode)
+        result = logic.process(parameterNode)
+        self.assertTrue(result.ok, result.warnings)
+        pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]
+        self.assertGreaterEqual(len(pdes), 3)
+        self.assertLess(max(pdes), 5.0)
+        for role in OUTPUT_NAMES:
+            self.assertIsNotNone(parameterNode.GetNodeReference(role), role)
+        self.assertEqual(parameterNode.GetNodeReference("ProjectedLevels").GetNumberOfControlPoints(),
+                         len(result.levels))
+        self.delayDisplay("Test passed")
+

@@ -1,0 +1,152 @@
+"""How a stored X-ray shows the anatomy - polarity (bone dark or bone bright) and storage - found from the image
+against the CT's DRRs, never assumed from the file type.
+
+Polarity
+--------
+The stored values S relate to the attenuation line integral L (bone bright, what a DRR is) through an unknown
+monotone map: decreasing when bone is displayed dark (fluoroscopy: S ~ I0 exp(-L) or a display of it),
+increasing when bone is displayed bright (a radiograph or PACS export: S ~ a + b L, log-like). Ranking S inside
+the exposed field, ``R = rank(S) / (n - 1)``, removes every increasing storage map (linear, log, gamma, 8-bit
+quantisation) and keeps only its direction. With the coarse DRRs D_k of the database and gradient correlation
+(GC, odd in its first argument: GC(-R, D) = -GC(R, D) exactly), one pass gives both polarities::
+
+    g_k = GC(R, D_k);   score(bone-bright) = max_k g_k;   score(bone-dark) = max_k (-g_k)
+    clarity = |score(bone-dark) - score(bone-bright)|
+
+The larger score decides. When ``clarity < CLEAR_POLARITY_GC`` the database's poses (no rotation, one depth) are
+too coarse to tell; the pipeline then refines each polarity's best DRR pose on the image alone and compares the
+refined GC (``decide_polarity`` with ``refined=``), which is recorded as the evidence instead.
+
+Storage
+-------
+Bone-dark images are converted to attenuation either as linear intensity, ``L = -log(S / S_ref)``, or as an
+already log-like display, ``L = (S_ref - S) / range``; the conversion whose best DRR agrees more (max GC over
+the database) is used and both scores are recorded. Bone-bright images are attenuation-like by construction and
+are used linearly, ``L = (S - S_lo) / range``.
+
+The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
+overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear decision, or a user's
+polarity the image clearly contradicts, keeps any level answer from being confident (``registration.levels``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask
+from carmreg.logic.similarity.metrics import similarity
+
+POLARITIES = ("bone-dark", "bone-bright")
+CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores above which the sign decides without refinement
+CLEAR_REFINED_GC = 0.05     # GC gap of the refined scores above which the tie-break is called clear
+
+
+@dataclass
+class Appearance:
+    """How the X-ray shows bone, and why we think so (module docstring)."""
+
+    polarity: str                     # "bone-dark" | "bone-bright": the one used
+    storage: str                      # "linear-intensity" (-log) | "log-display" (linear)
+    decided_by: str                   # "image" | "image (refined)" | "user" | "header"
+    clear: bool                       # the evidence clearly supports ``polarity`` (or the user's choice)
+    clarity_gc: float                 # GC gap between the polarities (database or refined scores)
+    threshold_gc: float               # the gap called clear
+    scores: dict                      # {"database": {"bone-dark": g, "bone-bright": g}, "refined": {...} | None,
+    #                                    "storage": {"linear-intensity": g, "log-display": g}}
+    header_polarity: str              # what the file's header (or the format's default) says
+    header_source: str
+    image_polarity: str               # what the image says, whatever was used
+    note: str = ""                    # in words, for the report and the GUI
+
+    @property
+    def bone_dark(self) -> bool:
+        return self.polarity == "bone-dark"
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def rank_image(pixels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """R in [0, 1] inside ``mask`` (ties broken by position; 0 outside): the storage-free image (docstring)."""
+    out = np.zeros(pixels.shape, np.float32)
+    values = np.asarray(pixels, np.float64)[mask]
+    if values.size > 1:
+        ranks = np.empty(values.size, np.float64)
+        ranks[np.argsort(values, kind="stable")] = np.arange(values.size)
+        out[mask] = (ranks / (values.size - 1)).astype(np.float32)
+    return out
+
+
+def _coarse(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    rows, cols = shape
+    return bin_image(image, factor)[:rows, :cols]
+
+
+def polarity_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
+    """{"bone-dark": max_k -GC(R, D_k), "bone-bright": max_k GC(R, D_k)} and the best DRR index of each.
+
+    ``drrs``: (n, rows, cols) coarse DRRs (line integrals); ``factor``: detector binning to their pixel."""
+    shape = drrs.shape[1:]
+    coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
+    g = similarity("gc", _coarse(rank_image(pixels, mask), factor, shape), drrs, coarse_mask)
+    return {"bone-dark": float(np.max(-g)), "bone-bright": float(np.max(g)),
+            "best_index": {"bone-dark": int(np.argmax(-g)), "bone-bright": int(np.argmax(g))}}
+
+
+def storage_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
+    """Best GC over the database of a bone-dark image converted as linear intensity (-log) or as a log display."""
+    shape = drrs.shape[1:]
+    coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
+    out = {}
+    for storage in ("linear-intensity", "log-display"):
+        line = attenuation(pixels, mask, True, storage)
+        out[storage] = float(np.max(similarity("gc", _coarse(line, factor, shape), drrs, coarse_mask)))
+    return out
+
+
+def image_polarity(scores: dict) -> tuple[str, float]:
+    """The polarity with the larger score and the gap to the other."""
+    dark, bright = scores["bone-dark"], scores["bone-bright"]
+    return ("bone-dark" if dark >= bright else "bone-bright"), float(abs(dark - bright))
+
+
+def decide_polarity(database: dict, refined: dict | None, requested: str, header_bone_dark: bool,
+                    header_source: str, storage: dict | None) -> Appearance:
+    """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose."""
+    evidence, threshold, by = (refined, CLEAR_REFINED_GC, "image (refined)") if refined is not None \
+        else (database, CLEAR_POLARITY_GC, "image")
+    seen, gap = image_polarity(evidence)
+    header = "bone-dark" if header_bone_dark else "bone-bright"
+    clear = gap >= threshold
+    if requested in POLARITIES:
+        polarity, by = requested, "user"
+        contradicted = clear and seen != requested
+        note = (f"{requested} as set by the user, but the image looks {seen} (GC gap {gap:.3f}): check the "
+                "polarity setting" if contradicted else f"{requested} as set by the user")
+        clear = not contradicted
+    elif clear:
+        polarity = seen
+        note = f"{seen}, found from the image (GC gap {gap:.3f} >= {threshold})"
+    else:
+        polarity = seen
+        note = (f"{seen}, but the image barely tells (GC gap {gap:.3f} < {threshold}); the file says {header}: "
+                "set the polarity by hand if the overlay looks inverted")
+    if storage is not None and polarity == "bone-dark":
+        chosen_storage = max(storage, key=storage.get)
+    else:
+        chosen_storage = "log-display" if polarity == "bone-bright" else "linear-intensity"
+    scores = {"database": {k: database[k] for k in POLARITIES},
+              "refined": None if refined is None else {k: refined[k] for k in POLARITIES}, "storage": storage}
+    return Appearance(polarity, chosen_storage, by, bool(clear), gap, threshold, scores, header, header_source,
+                      seen, note)
+
+
+def fixed_appearance(polarity: str, header_bone_dark: bool, header_source: str) -> Appearance:
+    """The appearance before (or without) the image's verdict: the user's polarity, else the header's."""
+    header = "bone-dark" if header_bone_dark else "bone-bright"
+    chosen, by = (polarity, "user") if polarity in POLARITIES else (header, "header")
+    storage = "linear-intensity" if chosen == "bone-dark" else "log-display"
+    return Appearance(chosen, storage, by, by == "user", float("nan"), CLEAR_POLARITY_GC, {}, header,
+                      header_source, "", f"{chosen} from the {'user' if by == 'user' else 'file header'}")

@@ -1,0 +1,138 @@
+"""One labelling of the X-ray clicks, registered: the unit of the method (``fit_labelling``).
+
+A labelling pairs each click (spine order) with a CT centroid. It is registered the way the pipeline registers
+named clicks: depth search (Algorithm 3) from the spatial stage's (ty, tz), anchored fine search (Algorithm 4),
+then a wide coarse image refinement (``image_refine`` at 4 mm: gradient correlation with a landmark term). Its
+score is that refinement's objective (lower is better)::
+
+    f = (1 - GC) + w_lm * mean_i (PDE_i / s_click)^2 + w_rot * sum_k (theta_k / 10 deg)^2
+
+so a labelling wins by image similarity AND landmark fit. ``refit_from`` gives a labelling another start (a
+rival labelling's refined pose: one level away along the spine, with that rival's rotations), keeping the better
+of the two refinements, so that a labelling never loses a contest to its optimiser stopping in a local optimum.
+
+The pipeline adopts the chosen labelling's fit (its depth, fine and coarse image refinement) instead of
+computing them again. Frames and units: poses are the 6 C-arm parameters (mm, degrees; ``geometry.camera``),
+points LPS mm, clicks (column, row) px, PDE detector mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carmreg.logic.geometry.camera import CarmGeometry
+from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.registration.depth import DepthResult, depth_search
+from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
+from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
+
+
+def coarse_refine_parameters() -> RefineParameters:
+    """The wide coarse refinement (4 mm mu, ~4 mm detector pixels) that scores a labelling and seeds the fine one."""
+    return RefineParameters(mu_spacing_mm=4.0, detector_pixel_mm=4.0, popsize=16, max_evaluations=800,
+                            sigma=(20.0, 4.0, 4.0, 4.0, 5.0, 5.0), bounds=(80.0, 20.0, 20.0, 12.0, 15.0, 15.0),
+                            landmark_weight=0.003, rotation_weight=0.002)
+
+
+@dataclass
+class FitContext:
+    """What every labelling's fit shares."""
+
+    mu: MuLevel                             # mu level of ``refine`` (its mu_spacing_mm)
+    geometry: CarmGeometry
+    xray_line_integral: np.ndarray          # (rows, cols) attenuation-like X-ray
+    mask: np.ndarray                        # (rows, cols) exposed field
+    start_ty_mm: float                      # the spatial stage's answer
+    start_tz_mm: float
+    fine: FineParameters                    # anchored landmark search (Algorithm 4)
+    refine: RefineParameters                # the wide coarse image refinement that scores a labelling
+    magnification_range: tuple = (1.05, 3.0)  # the depth search's C-arm range (Algorithm 3)
+    depth_far_mm: float = 400.0
+    depth_step_mm: float = 10.0
+    should_stop: object = None
+    on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
+
+
+@dataclass
+class LabellingFit:
+    """A labelling and, once registered, its fit. ``score`` is inf until ``refine`` ran."""
+
+    labels: list                            # CT level per click, clicks in spine order ([] without clicks)
+    shift: int                              # levels relative to the reference labelling
+    points_lps_mm: np.ndarray               # (n, 3) the labels' CT centroids
+    uv_px: np.ndarray                       # (n, 2) the clicks, spine order
+    depth: DepthResult | None = None
+    fine: FineResult | None = None
+    refine: RefineResult | None = None      # the best of its image refinements
+    starts: int = 0                         # image refinements run (starts)
+    runs: list = field(default_factory=list)  # objective of each start
+
+    @property
+    def refined(self) -> bool:
+        return self.refine is not None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(6,) the refined pose, else the landmark pose, else the depth search's."""
+        if self.refine is not None:
+            return np.asarray(self.refine.pose, float)
+        if self.fine is not None:
+            return np.asarray(self.fine.pose, float)
+        d = self.depth
+        return np.array([d.tx_mm, d.ty_mm, d.tz_mm, 0.0, 0.0, 0.0]) if d is not None else np.zeros(6)
+
+    @property
+    def score(self) -> float:
+        return float(self.refine.objective_end) if self.refine is not None else float("inf")
+
+    @property
+    def similarity(self) -> float:
+        return float(self.refine.similarity_end) if self.refine is not None else float("nan")
+
+    @property
+    def mpde_mm(self) -> float:
+        return float(self.refine.mpde_mm) if self.refine is not None else float("nan")
+
+    def as_dict(self) -> dict:
+        return {"labels": list(self.labels), "shift": self.shift, "score": self.score,
+                "similarity": self.similarity, "mpde_mm": self.mpde_mm, "refined": self.refined,
+                "starts": self.starts, "start_scores": [float(x) for x in self.runs],
+                "pose": [float(x) for x in self.pose]}
+
+
+def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.ndarray, uv_px: np.ndarray
+                   ) -> LabellingFit:
+    """A labelling before its image registration: only its depth search (Algorithm 3), whose source depth says
+    how plausible the magnification implied by the click spacing is."""
+    depth = depth_search(ctx.geometry, ctx.start_ty_mm, ctx.start_tz_mm, points_lps_mm, uv_px, ctx.depth_far_mm,
+                         ctx.depth_step_mm, magnification_range=ctx.magnification_range)
+    return LabellingFit(list(labels), shift, np.asarray(points_lps_mm, float), np.asarray(uv_px, float), depth)
+
+
+def fit_labelling(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+    """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose, then the
+    wide image refinement that scores it (module docstring). Returns the same object, filled."""
+    if ctx.on_labelling is not None:
+        ctx.on_labelling(list(fit.labels))
+    fit.fine = fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine,
+                           should_stop=ctx.should_stop)
+    return _refine_from(ctx, fit, fit.fine.pose)
+
+
+def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
+    """Another start of the image refinement for a registered labelling; the better refinement is kept."""
+    if ctx.on_labelling is not None:
+        ctx.on_labelling(list(fit.labels))
+    return _refine_from(ctx, fit, np.asarray(start_pose, float))
+
+
+def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
+    r = intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm,
+                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop)
+    fit.starts += 1
+    fit.runs.append(float(r.objective_end))
+    if fit.refine is None or r.objective_end < fit.refine.objective_end:
+        fit.refine = r
+    return fit
