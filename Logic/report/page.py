@@ -70,8 +70,10 @@ def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True)
                                       if not check else "")
     margin = check.get("margin")
     if detail and margin is not None and np.isfinite(margin):
+        from carmreg.logic.registration.level_confidence import ConfidenceRule
+
         reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
-                  "is better; 0.02 separates confident from ambiguous)"
+                  f"is better; {ConfidenceRule().margin:.2f} separates confident from ambiguous)"
     colour = STATUS_COLOURS.get(status, STATUS_COLOURS[None])
     if not ok and status not in ("contradicted",):
         colour = STATUS_COLOURS["contradicted"]
