@@ -220,6 +220,10 @@ def _print_report(result, seconds: float, out) -> None:
         for lv in in_image) + "   (* = clicked)")
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
+    if result.appearance is not None:
+        a = result.appearance
+        print(f"X-ray appearance: {a.note}; stored as {a.storage.replace('-', ' ')}; orientation "
+              f"{a.orientation.replace('-', ' ')}{'' if a.orientation_clear else ' (unclear)'}")
     if result.level_check:
         print(level_summary(result.level_check))
     for w in result.warnings:
@@ -295,7 +299,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_drr(args) -> int:
-    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
+    from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose, nominal_geometry
     from carmreg.logic.geometry.volume import MuPyramid
     from carmreg.logic.io.volumes import load_volume
     from carmreg.logic.report.result_files import save_png, to_uint8, write_drr_nrrd
@@ -315,7 +319,7 @@ def cmd_drr(args) -> int:
                                     tuple(args.principal_point_px) if args.principal_point_px else None,
                                     {"sdd_mm": "manual" if args.sdd_mm else "default"})
         sod = args.sod_mm
-    geometry = CarmGeometry(intrinsics, tuple(ct.center_lps_mm()), sod or 0.6 * intrinsics.sdd_mm)
+    geometry = nominal_geometry(intrinsics, ct, sod)
     pose = CarmPose.from_array(args.pose)
     t0 = time.perf_counter()
     if args.engine == "vtk":

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from qtpy import QtCore, QtWidgets
 
+from carmreg.logic.geometry.camera import DEFAULT_SOD_FRACTION, nominal_sod_mm
+
 from ..presets import DevicePreset, list_presets
 
 NOT_SET = "not set"
@@ -146,9 +148,9 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.size_label.setText(f"Detector: {size[0]} x {size[1]} px (columns x rows), from the image"
                                 if xray is not None else "Load an X-ray to see its geometry")
         if sdd and (sod or sdd):
-            sod_eff = sod or 0.6 * sdd
+            sod_eff = nominal_sod_mm(sdd, sod)
             self.magnification_label.setText(f"Magnification at the isocentre: SDD / SOD = {sdd / sod_eff:.2f}"
-                                             + ("" if sod else " (SOD assumed 0.6 x SDD)"))
+                                             + ("" if sod else f" (SOD assumed {DEFAULT_SOD_FRACTION} x SDD)"))
         else:
             self.magnification_label.setText("Geometry incomplete: choose a device preset or enter SDD and "
                                               "pixel spacing")

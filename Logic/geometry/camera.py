@@ -215,6 +215,21 @@ class CarmGeometry:
         return pixel_to_detector_lps(self, pose, uv)
 
 
+DEFAULT_SOD_FRACTION = 0.6  # nominal source-to-isocentre distance / SDD when nothing says (a mobile C-arm)
+
+
+def nominal_sod_mm(sdd_mm: float, sod_mm: float | None = None) -> float:
+    """The source-to-isocentre distance to use: the known one, else ``DEFAULT_SOD_FRACTION`` x SDD."""
+    return float(sod_mm) if sod_mm else DEFAULT_SOD_FRACTION * float(sdd_mm)
+
+
+def nominal_geometry(intrinsics: CarmIntrinsics, volume, sod_mm: float | None = None) -> CarmGeometry:
+    """The nominal AP C-arm for a CT ``volume``: isocentre at the volume centre (paper 3.1.3), SOD as known or
+    ``nominal_sod_mm``."""
+    return CarmGeometry(intrinsics, tuple(float(x) for x in volume.center_lps_mm()),
+                        nominal_sod_mm(intrinsics.sdd_mm, sod_mm))
+
+
 def project(P: np.ndarray, points_lps_mm: np.ndarray) -> np.ndarray:
     """(u, v) px of (n, 3) LPS points under P (3, 4) or a batch (m, 3, 4) -> (n, 2) or (m, n, 2)."""
     pts = np.asarray(points_lps_mm, dtype=np.float64)

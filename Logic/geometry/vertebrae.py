@@ -32,7 +32,7 @@ from scipy import ndimage
 
 from carmreg.logic.errors import LandmarkError
 from carmreg.logic.geometry.volume import Volume
-from carmreg.logic.io.landmarks import LEVEL_NAMES, Landmarks3D, level_index, normalize_level_name
+from carmreg.logic.io.landmarks import LEVEL_NAMES, TRANSITIONAL_LEVELS, Landmarks3D, level_index, normalize_level_name
 
 TOTALSEGMENTATOR_V2_VERTEBRAE: dict[int, str] = {
     26: "S1",
@@ -52,7 +52,6 @@ CARMREG_VERTEBRAE: dict[int, str] = {carmreg_label_value(n): n for n in LEVEL_NA
 """CarmReg label value -> level name (1 C1 ... 27 S1)."""
 
 
-TRANSITIONAL_LEVELS = ("T13", "L6")
 """Levels most spines do not have; they count as a level only when a patient's labels include them."""
 
 

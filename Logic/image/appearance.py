@@ -24,9 +24,23 @@ already log-like display, ``L = (S_ref - S) / range``; the conversion whose best
 the database) is used and both scores are recorded. Bone-bright images are attenuation-like by construction and
 are used linearly, ``L = (S - S_lo) / range``.
 
+Orientation
+-----------
+A C-arm display can be mirrored left-right or turned (display settings), which no header records. With the
+polarity's sign s, the rank image is also scored in the other orientations that keep its shape - mirrored
+left-right, flipped up-down, turned 180 degrees, and on a square detector turned 90 degrees either way -
+against every other DRR of the database (half the grid each way, enough to find the best)::
+
+    score(o) = max_k s GC(o(R), D_k)
+
+The stored orientation must beat every other by ``CLEAR_ORIENTATION_GC``: when another orientation wins by that
+much the image is refused for registration (the pipeline's checks: ``ok`` false, "fix the display"); when the
+stored one does not lead clearly the orientation is *unclear*.
+
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
-overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear decision, or a user's
-polarity the image clearly contradicts, keeps any level answer from being confident (``registration.levels``).
+overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
+user's polarity the image clearly contradicts, keeps any level answer from being confident
+(``registration.level_confidence``).
 """
 
 from __future__ import annotations
@@ -41,6 +55,10 @@ from carmreg.logic.similarity.metrics import similarity
 POLARITIES = ("bone-dark", "bone-bright")
 CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores above which the sign decides without refinement
 CLEAR_REFINED_GC = 0.05     # GC gap of the refined scores above which the tie-break is called clear
+CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
+ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
+                "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
+                "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
 
 
 @dataclass
@@ -59,10 +77,25 @@ class Appearance:
     header_source: str
     image_polarity: str               # what the image says, whatever was used
     note: str = ""                    # in words, for the report and the GUI
+    orientation: str = "as-stored"    # the orientation the image matches best (ORIENTATIONS)
+    orientation_scores: dict | None = None  # orientation -> best signed GC over the (halved) database
+    orientation_clear: bool = True    # the stored orientation leads every other by CLEAR_ORIENTATION_GC
 
     @property
     def bone_dark(self) -> bool:
         return self.polarity == "bone-dark"
+
+    @property
+    def trusted(self) -> bool:
+        """Polarity and orientation both clear: a level answer may be confident."""
+        return self.clear and self.orientation_clear and self.orientation == "as-stored"
+
+    def set_orientation(self, scores: dict) -> None:
+        """Record ``orientation_scores`` and decide the orientation (module docstring)."""
+        self.orientation_scores = dict(scores)
+        self.orientation = max(scores, key=scores.get)
+        others = [v for k, v in scores.items() if k != "as-stored"]
+        self.orientation_clear = not others or scores["as-stored"] - max(others) >= CLEAR_ORIENTATION_GC
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -103,6 +136,26 @@ def storage_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, facto
     for storage in ("linear-intensity", "log-display"):
         line = attenuation(pixels, mask, True, storage)
         out[storage] = float(np.max(similarity("gc", _coarse(line, factor, shape), drrs, coarse_mask)))
+    return out
+
+
+def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarray, factor: int,
+                       bone_dark: bool) -> dict:
+    """score(o) for every shape-keeping orientation o (module docstring); ``drrs_grid``: (ny, nz, rows, cols)."""
+    half = drrs_grid[::2, ::2]
+    rows, cols = half.shape[2:]
+    flat = half.reshape(-1, rows, cols)
+    sign = -1.0 if bone_dark else 1.0
+    ranked = rank_image(pixels, mask)
+    out = {}
+    for name, turn in ORIENTATIONS.items():
+        image, field = turn(ranked), turn(mask)
+        if image.shape != ranked.shape or (name.startswith("turned-") and name != "turned-180"
+                                           and ranked.shape[0] != ranked.shape[1]):
+            continue
+        coarse_mask = bin_mask(np.ascontiguousarray(field), factor)[:rows, :cols]
+        g = similarity("gc", _coarse(np.ascontiguousarray(image), factor, (rows, cols)), flat, coarse_mask)
+        out[name] = float(np.max(sign * g))
     return out
 
 

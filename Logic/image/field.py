@@ -6,7 +6,7 @@ some (bone-dark fluoroscopy whose corners are blanked white, inverted displays).
 
     B = union over e in {low end, high end} of the connected regions of
         { |I_s - e| <= 5 % of the range  and  local std(I_s, 5 x 5 px) <= 2 % of the range }
-    that touch the image border,
+    that touch the image border, grown by the 2 px the 5 x 5 window blurs across the field's edge,
 
 with ``I_s`` the image after a 3 x 3 mean and the range the 0.5-99.5th percentiles. The field is the largest
 connected part of the rest (holes filled: burnt-in text and dense metal inside the field stay in), eroded by
@@ -46,6 +46,7 @@ def field_mask(pixels: np.ndarray) -> np.ndarray:
     flat = local_std <= FLAT_FRACTION * span
     tol = EXTREME_FRACTION * span
     background = _border_connected(flat & (img <= lo + tol)) | _border_connected(flat & (img >= hi - tol))
+    background = ndimage.binary_dilation(background, iterations=2)  # the rim the 5 x 5 window blurred
     field = ndimage.binary_opening(~background, np.ones((5, 5), bool))
     labels, n = ndimage.label(field)
     if n == 0:

@@ -15,11 +15,12 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
      clicks fitted 3.19 mm against 1.66 mm, one level off);
    - stability: the leading two labellings were refitted, each from the other's pose, and the same one led;
-   - polarity: the X-ray's polarity was clear (``image.appearance``), or set by the user and not contradicted.
+   - appearance: the X-ray's polarity was clear (or set by the user and not contradicted) and it matches the CT
+     as stored, clearly better than mirrored or turned (``image.appearance``).
 
    Any failed check turns the verdict into **ambiguous**, with the reasons in words.
 
-Without clicks the verdict is at best **proposed** (never confident); the image-agreement and polarity checks
+Without clicks the verdict is at best **proposed** (never confident); the image-agreement and appearance checks
 apply, the landmark one cannot.
 """
 
@@ -51,7 +52,7 @@ class Verdict:
 
 
 def _checks(winner: LabellingFit, rival: LabellingFit | None, rule: ConfidenceRule, stable: bool,
-            polarity_clear: bool, landmarks: bool) -> tuple[dict, list[str]]:
+            appearance_clear: bool, landmarks: bool) -> tuple[dict, list[str]]:
     checks, reasons = {}, []
     gc = winner.similarity
     checks["image_agreement"] = {"gc": gc, "min": rule.min_similarity, "ok": bool(gc >= rule.min_similarity)}
@@ -69,38 +70,38 @@ def _checks(winner: LabellingFit, rival: LabellingFit | None, rule: ConfidenceRu
     checks["stability"] = {"ok": bool(stable)}
     if not stable:
         reasons.append("the leading labelling changed when the two best were refitted from each other's pose")
-    checks["polarity"] = {"ok": bool(polarity_clear)}
-    if not polarity_clear:
-        reasons.append("the X-ray's polarity (bone dark or bright) is not clear")
+    checks["appearance"] = {"ok": bool(appearance_clear)}
+    if not appearance_clear:
+        reasons.append("the X-ray's appearance is not clear (bone dark or bright, or a mirrored or turned display)")
     return checks, reasons
 
 
 def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: ConfidenceRule, *, stable: bool = True,
-           polarity_clear: bool = True) -> Verdict:
+           appearance_clear: bool = True) -> Verdict:
     """The verdict over the registered labellings (module docstring); ``given``: the surgeon's labelling."""
     ranked = sorted((f for f in fits if f.refined), key=lambda f: f.score)
     winner = ranked[0]
     reference = given if given is not None else winner
     others = [f for f in ranked if f is not reference]
     if not others:
-        checks, reasons = _checks(winner, None, rule, stable, polarity_clear, landmarks=True)
+        checks, reasons = _checks(winner, None, rule, stable, appearance_clear, landmarks=True)
         return Verdict("ambiguous" if reasons else "confident", float("inf"), winner, None, reasons, checks)
     d = float(others[0].score - reference.score)
     runner_up = others[0] if reference is winner else winner
     status = "confident" if d >= rule.margin else ("ambiguous" if d > -rule.margin else "contradicted")
     rival = others[0] if reference is winner else reference
-    checks, reasons = _checks(winner, rival, rule, stable, polarity_clear, landmarks=True)
+    checks, reasons = _checks(winner, rival, rule, stable, appearance_clear, landmarks=True)
     if status != "ambiguous" and reasons:
         return Verdict("ambiguous", d, winner, runner_up, reasons, checks)
     return Verdict(status, d, winner, runner_up, [], checks)
 
 
-def decide_image_only(ranked: list[LabellingFit], rule: ConfidenceRule, *, polarity_clear: bool = True) -> Verdict:
-    """No clicks: proposed when the best pose leads by ``margin`` and passes the image and polarity checks."""
+def decide_image_only(ranked: list[LabellingFit], rule: ConfidenceRule, *, appearance_clear: bool = True) -> Verdict:
+    """No clicks: proposed when the best pose leads by ``margin`` and passes the image and appearance checks."""
     winner = ranked[0]
     runner_up = ranked[1] if len(ranked) > 1 else None
     d = float(runner_up.score - winner.score) if runner_up is not None else float("inf")
-    checks, reasons = _checks(winner, runner_up, rule, True, polarity_clear, landmarks=False)
+    checks, reasons = _checks(winner, runner_up, rule, True, appearance_clear, landmarks=False)
     if d < rule.margin:
         return Verdict("ambiguous", d, winner, runner_up, [], checks)
     return Verdict("ambiguous" if reasons else "proposed", d, winner, runner_up, reasons, checks)

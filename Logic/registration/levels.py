@@ -145,7 +145,7 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
 
 
 def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
-                    polarity_clear: bool = True) -> LevelIdentification:
+                    appearance_clear: bool = True) -> LevelIdentification:
     """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
     Named clicks without a CT centroid are left out (as in pairing by name); ``click_indices`` says which
     clicks were identified."""
@@ -169,7 +169,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [])  # a new leader is compared with its neighbours too
     given = fits[given_index] if given_index is not None else None
-    verdict = decide(fits, given, p.rule, stable=stable, polarity_clear=polarity_clear)
+    verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
     return LevelIdentification(mode, verdict.status, verdict.margin, order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(mode, verdict, chosen),
@@ -227,7 +227,7 @@ def _level_step(ct: Landmarks3D, label: str, step: int) -> np.ndarray | None:
 
 def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray, ty_mm: np.ndarray,
                         tz_mm: np.ndarray, tx_mm: float, params: IdentifyParameters | None = None,
-                        polarity_clear: bool = True) -> LevelIdentification:
+                        appearance_clear: bool = True) -> LevelIdentification:
     """No clicks: refine from the best peaks of the spatial map on the image alone, then challenge the winner
     with its pose moved one level up and down along the spine (the look-alike neighbours); decide as above.
     A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py)."""
@@ -257,7 +257,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray,
     distinct = {}
     for h in sorted(hypotheses, key=lambda h: h.score):
         distinct.setdefault(h.labels[0], h)
-    verdict = decide_image_only(list(distinct.values()), p.rule, polarity_clear=polarity_clear)
+    verdict = decide_image_only(list(distinct.values()), p.rule, appearance_clear=appearance_clear)
     visible = visible_levels(ctx.geometry, verdict.winner.pose, ct, ctx.mask)
     message = _message("image_only", verdict, verdict.winner, visible)
     return LevelIdentification("image_only", verdict.status, verdict.margin, [], verdict.winner, verdict.runner_up,

@@ -23,7 +23,7 @@ Stages (each a plain function in its own module, returning a small result):
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector.
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
-``sod_mm`` from it (the X-ray's DICOM DistanceSourceToPatient when known, else ``default_sod_fraction`` x SDD).
+``sod_mm`` from it (the X-ray's DICOM DistanceSourceToPatient when known, else 0.6 x SDD: ``camera.nominal_geometry``).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import CancelledError, LandmarkError, RegistrationError
-from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, project
+from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, nominal_geometry, project
 from carmreg.logic.geometry.projection_distance import mpde_mm, pde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
@@ -47,6 +47,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     fixed_appearance,
     image_polarity,
+    orientation_scores,
     polarity_scores,
     storage_scores,
 )
@@ -93,7 +94,6 @@ class RegistrationParameters:
     level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
     identify: IdentifyParameters = field(default_factory=IdentifyParameters)
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
-    default_sod_fraction: float = 0.6       # nominal SOD / SDD when the X-ray does not say
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
     magnification_range: tuple = (1.05, 3.0)
     cache_dir: str | None = None
@@ -215,8 +215,7 @@ class CarmRegLogic:
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
         pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
         _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
-        sod = xray.sod_mm or params.default_sod_fraction * intrinsics.sdd_mm
-        geometry = CarmGeometry(intrinsics, tuple(float(x) for x in ct.center_lps_mm()), float(sod))
+        geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
@@ -294,9 +293,14 @@ class CarmRegLogic:
         state.appearance = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
                                            xray.sources.get("bone_dark", ""), storage)
         a = state.appearance
+        a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
+                                             a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
         if not a.clear:
             state.warnings.append(f"X-ray polarity: {a.note}")
+        if a.orientation == "as-stored" and not a.orientation_clear:
+            state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned almost as well as "
+                                  "as stored; check that the display is not mirrored or rotated")
         return a.as_dict()
 
     def _refined_polarity_scores(self, state: RegistrationState, scores: dict) -> dict:
@@ -370,13 +374,13 @@ class CarmRegLogic:
                          self._check_cancel,
                          self._labelling_progress(len(clicks.labels), clicks.named,
                                                   len(ct_level_names(state.ct_landmarks)), p.identify))
-        polarity_clear = state.appearance is None or state.appearance.clear
+        appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        p.identify, polarity_clear)
+                                        p.identify, appearance_clear)
         else:
-            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, polarity_clear)
+            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear)
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -513,6 +517,12 @@ class CarmRegLogic:
                             "spacing and the landmarks")
         if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
             problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
+        a = state.appearance
+        if a is not None and a.orientation != "as-stored":
+            best, stored = a.orientation_scores[a.orientation], a.orientation_scores["as-stored"]
+            problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
+                            f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
+                            "acquired (head up, patient's right on the viewer's left) and register again")
         if state.identification is not None and state.identification.status == "contradicted":
             problems.append(state.identification.message)
         lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)

@@ -38,7 +38,7 @@ from bench_registration import load_case, simulate  # noqa: E402
 from second_ct import load_second_ct  # noqa: E402
 
 from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
-from carmreg.logic.registration.levels import shifted_labels  # noqa: E402
+from carmreg.logic.registration.labellings import shifted_labels  # noqa: E402
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters  # noqa: E402
 from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
 

@@ -81,7 +81,7 @@ def run_case(ct, centroids, sim, xray, params, clicks=None):
 def shifted_clicks(sim, centroids, shift: int = 1):
     """The same clicks with every label moved one level caudally (T10, T11, T12 -> T11, T12, L1)."""
     from carmreg.logic.io.landmarks import Landmarks2D
-    from carmreg.logic.registration.levels import shifted_labels
+    from carmreg.logic.registration.labellings import shifted_labels
 
     labels = shifted_labels(sim.clicks.labels, shift, set(centroids.labels))
     return None if labels is None else Landmarks2D(labels, sim.clicks.uv_px, "shifted")

@@ -127,16 +127,16 @@ def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous()
     a, b = _h(["T10"], 0.50), _h(["T11"], 0.60)
     v = decide([a, b], None, RULE, stable=False)
     assert v.status == "ambiguous" and "refitted" in v.reasons[0] and not v.checks["stability"]["ok"]
-    v = decide([a, b], None, RULE, polarity_clear=False)
-    assert v.status == "ambiguous" and "polarity" in v.reasons[0]
-    assert decide([a, b], b, RULE, polarity_clear=False).status == "ambiguous"  # no contradiction either
+    v = decide([a, b], None, RULE, appearance_clear=False)
+    assert v.status == "ambiguous" and "appearance" in v.reasons[0]
+    assert decide([a, b], b, RULE, appearance_clear=False).status == "ambiguous"  # no contradiction either
 
 
 def test_image_only_answers_are_at_best_proposed():
     a, b = _h([], 0.50), _h([], 0.60)
     assert decide_image_only([a, b], RULE).status == "proposed"
     assert decide_image_only([a, _h([], 0.51)], RULE).status == "ambiguous"
-    assert decide_image_only([a, b], RULE, polarity_clear=False).status == "ambiguous"
+    assert decide_image_only([a, b], RULE, appearance_clear=False).status == "ambiguous"
 
 
 def test_spatial_peaks_are_separated_local_maxima_best_first():
