@@ -251,14 +251,39 @@ def level_summary(check: dict) -> str:
 
 def _check_out_dir(out) -> None:
     """Refuse an output folder that cannot be created or written, before any work is done."""
-    import os
+    from carmreg.logic.io.transaction import check_writable_folder
 
-    path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise CarmRegError(f"--out {out} is a file; give a folder for the results")
-    probe = path if path.exists() else next((p for p in path.parents if p.exists()), Path("."))
-    if not os.access(probe, os.W_OK):
-        raise CarmRegError(f"--out {out}: {probe} is not writable; choose another output folder")
+    check_writable_folder(out)
+
+
+MAX_SEED = 2**32 - 1
+
+
+def _check_numbers(args) -> None:
+    """Refuse, before any work, numbers the commands would silently reinterpret (quoting the user's value)."""
+    seed = getattr(args, "seed", None)
+    if seed is not None and not 0 <= seed <= MAX_SEED:
+        raise CarmRegError(f"--seed {seed} is not a valid seed: give a whole number from 0 to {MAX_SEED}")
+    frame = getattr(args, "frame", None)
+    if frame is not None and frame < 0:
+        raise CarmRegError(f"--frame {frame}: frames are counted from 0 (the first); give --frame 0 or more")
+    if getattr(args, "out", None) is not None and not str(args.out).strip():
+        raise CarmRegError("--out '' is empty; give the output folder (or file prefix for drr)")
+
+
+def _install_signal_handlers() -> None:
+    """SIGTERM (and SIGHUP) unwind like Ctrl-C, so every temporary file and staging folder is removed."""
+    import signal
+
+    def terminate(signum, frame):
+        raise SystemExit(128 + signum)
+
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            try:
+                signal.signal(getattr(signal, name), terminate)
+            except (ValueError, OSError):  # not the main thread
+                pass
 
 
 def cmd_register(args) -> int:
@@ -308,16 +333,22 @@ def cmd_drr(args) -> int:
     if not np.all(np.isfinite(args.pose)):
         raise CarmRegError("--pose must be six finite numbers: tx ty tz (mm) rx ry rz (degrees)")
     if not all(2 <= n <= 4096 for n in args.size_px):
-        raise CarmRegError("--size-px must be two numbers between 2 and 4096 (columns rows)")
+        raise CarmRegError(f"--size-px {args.size_px[0]} {args.size_px[1]} must be two numbers between 2 and 4096 "
+                           "(columns rows)")
+    _check_out_dir(Path(args.out).parent)
     ct = load_volume(args.ct or sample_case()["ct"])
     if args.xray:
         xray = _load_xray(args)
         intrinsics, sod = xray.require_intrinsics(), xray.sod_mm
     else:
         spacing = _spacing(args.pixel_spacing_mm) or (0.5, 0.5)
-        intrinsics = CarmIntrinsics(args.sdd_mm or 1020.0, spacing, tuple(args.size_px),
-                                    tuple(args.principal_point_px) if args.principal_point_px else None,
-                                    {"sdd_mm": "manual" if args.sdd_mm else "default"})
+        try:
+            intrinsics = CarmIntrinsics(1020.0 if args.sdd_mm is None else args.sdd_mm, spacing,
+                                        tuple(args.size_px),
+                                        tuple(args.principal_point_px) if args.principal_point_px else None,
+                                        {"sdd_mm": "default" if args.sdd_mm is None else "manual"})
+        except CarmRegError as exc:
+            raise CarmRegError(f"carmreg drr: {exc}") from None
         sod = args.sod_mm
     geometry = nominal_geometry(intrinsics, ct, sod)
     pose = CarmPose.from_array(args.pose)
@@ -340,6 +371,10 @@ def cmd_drr(args) -> int:
 
 def cmd_simulate(args) -> int:
     from carmreg.logic.simulation import simulator as simulate
+
+    if args.size_px is not None and not 64 <= args.size_px <= 4096:
+        raise CarmRegError(f"--size-px {args.size_px} must be between 64 and 4096 (detector columns = rows)")
+    _check_out_dir(args.out)
 
     return simulate.run_cli(args)
 
@@ -394,7 +429,9 @@ COMMANDS = {"register": cmd_register, "demo": cmd_demo, "drr": cmd_drr, "simulat
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    _install_signal_handlers()
     try:
+        _check_numbers(args)
         return COMMANDS[args.command](args)
     except CarmRegError as exc:
         print(f"carmreg: error: {' '.join(str(exc).split())}", file=sys.stderr)

@@ -159,17 +159,31 @@ class WindowSession:
         return path
 
     def offer_recovery(self) -> bool:
-        """If a previous run crashed, offer its autosave. Returns True when work was recovered."""
-        found = session_io.find_recoverable(self.state_folder)
+        """If a previous run crashed, offer its autosave. Returns True when work was recovered.
+
+        Never raises: an autosave that cannot be read or restored is set aside (renamed ``*.unreadable``,
+        so it is not offered again at every start, yet kept for the user) and named in one dialog."""
+        try:
+            found = session_io.find_recoverable(self.state_folder)
+        except OSError as exc:
+            LOG.warning("cannot look for autosaves in %s: %s", self.state_folder, exc)
+            return False
         if not found:
             return False
         newest = found[0]
         try:
-            session = session_io.load_session(newest)
-        except CarmRegError as exc:
-            LOG.warning("unreadable autosave %s: %s", newest, exc)
-            newest.unlink(missing_ok=True)
+            return self._recover(newest, found)
+        except Exception as exc:  # noqa: BLE001 - a bad autosave must never stop the window from starting
+            kept = session_io.set_aside(newest)
+            LOG.warning("autosave %s could not be restored: %s", newest, exc)
+            self.new_session(ask=False)
+            message = str(exc) if isinstance(exc, CarmRegError) else f"{exc.__class__.__name__}: {exc}"
+            self.dialogs.error("CarmReg - recover work", f"The work autosaved by a previous run could not be "
+                               f"restored ({' '.join(message.split())[:300]}). It was set aside as {kept}.")
             return False
+
+    def _recover(self, newest: Path, found: list[Path]) -> bool:
+        session = session_io.load_session(newest)
         when = time.strftime("%Y-%m-%d %H:%M", time.localtime(newest.stat().st_mtime))
         text = (f"CarmReg did not close normally ({when}). Recover the unsaved work?\n\n"
                 f"CT: {session.ct_path or '-'}\nX-ray: {session.xray_path or '-'}\n"

@@ -5,6 +5,8 @@ what was wrong, where (file, field) and what to do. Front doors print it as one 
 show it in a dialog (GUI). Anything else is an internal error and keeps its traceback.
 """
 
+import json
+
 
 class CarmRegError(Exception):
     """Base class of every error a user can act on."""
@@ -28,3 +30,20 @@ class RegistrationError(CarmRegError):
 
 class CancelledError(CarmRegError):
     """The user cancelled a long computation."""
+
+
+def quote(value, limit: int = 60) -> str:
+    """The user's value for an error message: ``'text'`` for a string, JSON for anything else (``[true, 0]``),
+    cut to ``limit`` characters with the full length named (a 10 MB label stays one short line)."""
+    if isinstance(value, str):
+        text = repr(value if len(value) <= limit else value[:limit])
+    else:
+        try:
+            text = json.dumps(value, allow_nan=True)
+        except (TypeError, ValueError, RecursionError):
+            text = repr(value)
+    if len(text) > limit + 2:
+        text = text[:limit] + "..."
+    if isinstance(value, str | list | dict) and len(value) > limit:
+        text += f" ({len(value)} {'characters' if isinstance(value, str) else 'items'})"
+    return text

@@ -148,7 +148,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.size_label.setText(f"Detector: {size[0]} x {size[1]} px (columns x rows), from the image"
                                 if xray is not None else "Load an X-ray to see its geometry")
         if sdd and (sod or sdd):
-            sod_eff = nominal_sod_mm(sdd, sod)
+            sod_eff = nominal_sod_mm(sdd, sod or None)  # 0 here = not set
             self.magnification_label.setText(f"Magnification at the isocentre: SDD / SOD = {sdd / sod_eff:.2f}"
                                              + ("" if sod else f" (SOD assumed {DEFAULT_SOD_FRACTION} x SDD)"))
         else:

@@ -23,8 +23,9 @@ Speed (the numbers are exact; only the order of work changes):
 - empty space is not skipped: exact zero-run skipping along the beam axis was measured and saved nothing
   here (the extra table lookup per step cost as much as the skipped steps; CT air is noisy, not zero).
 - parallel over image rows of every image of a batch (numba prange); small jobs (a 64^2 DRR of the 4 mm
-  level) run on the calling thread. Kernels are compiled once and cached on disk (``cache=True``; the first
-  use in a fresh environment compiles for about 7-15 s, later processes load them in about 0.5 s).
+  level) run on the calling thread. Kernels are compiled once and cached on disk (``carmreg.logic.jit.njit``;
+  the first use in a fresh environment compiles for about 7-15 s, later processes load them in about 0.5 s;
+  with no writable cache folder they are compiled in memory in every process).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
 from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.jit import njit
 
 _BIG = 1e30
 SERIAL_WORK_LIMIT = 2_000_000
@@ -44,7 +46,7 @@ SERIAL_WORK_LIMIT = 2_000_000
 the second core whenever another process holds it (measured: 64^2 at 4 mm, median 8 ms parallel vs 1.4 ms)."""
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _clip_axis(s, d, n, t_in, t_out):
     """Intersect the ray parameter interval with the slab [-0.5, n - 0.5] of one index axis."""
     if abs(d) < 1e-12:
@@ -58,7 +60,7 @@ def _clip_axis(s, d, n, t_in, t_out):
     return max(t_in, ta), min(t_out, tb)
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _axis_start(s, d, t, n):
     """Voxel index at ray parameter t, step sign, parameter of the next boundary, parameter per voxel."""
     i = min(max(int(np.floor(s + t * d + 0.5)), 0), n - 1)
@@ -69,7 +71,7 @@ def _axis_start(s, d, t, n):
     return i, 1, _BIG, _BIG
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
     """Integral of mu over the ray parameter along s -> s + d (ijk units of a C-ordered (n0, n1, n2) grid).
 
@@ -137,7 +139,7 @@ def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
         lim = min(ti, tj, t_out)
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out, b, v):
     """Row v of image b, columns spans[v, 0] <= u < spans[v, 1] (see _render_batch)."""
     n0, n1, n2 = shape
@@ -152,7 +154,7 @@ def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_
         out[b, v, u] = length * _trace(flat, n0, n1, n2, s0, s1, s2, p0 - s0, p1 - s1, p2 - s2)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
     """out[b, v, u] = line integral for image b; per-image vectors in the (permuted) ijk units of ``mu``.
 
@@ -167,7 +169,7 @@ def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd
                     task // rows, task % rows)
 
 
-@numba.njit(cache=True, fastmath=True)
+@njit(fastmath=True)
 def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
     """_render_batch on the calling thread (small jobs: no wait for a busy second core)."""
     nb, rows = out.shape[0], out.shape[1]

@@ -50,6 +50,13 @@ NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patie
 POSE_NAMES = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
+MAX_PIXEL_ASPECT = 3.0
+"""Largest ratio of column to row spacing accepted (detector pixels are square or nearly)."""
+MAX_DETECTOR_MM = 600.0
+"""Largest detector side accepted: flat panels reach 43 cm, image intensifiers 40 cm (Ø), so 60 cm leaves
+margin while refusing a pixel-spacing typo (2.5 mm for 0.25) before it sizes a 2.5 m detector and its DRRs."""
+
+
 @dataclass(frozen=True)
 class CarmIntrinsics:
     """Detector and source-to-detector distance.
@@ -83,8 +90,19 @@ class CarmIntrinsics:
         if not (np.isfinite(du) and np.isfinite(dv) and 0.01 <= du <= 10.0 and 0.01 <= dv <= 10.0):
             raise GeometryError(f"pixel spacing ({du}, {dv}) mm is not plausible: give --pixel-spacing-mm "
                                 "between 0.01 and 10 (detector pixel size, not calibrated to the patient)")
+        if max(du, dv) > MAX_PIXEL_ASPECT * min(du, dv):
+            raise GeometryError(f"pixel spacing ({du:g}, {dv:g}) mm: columns and rows differ by "
+                                f"{max(du, dv) / min(du, dv):.1f}x, but detector pixels are square or nearly: check "
+                                "--pixel-spacing-mm (column, row) or the file's ImagerPixelSpacing (row\\column)")
         if cols < 2 or rows < 2:
-            raise GeometryError(f"detector size {cols}x{rows} px is too small")
+            raise GeometryError(f"detector size {cols}x{rows} px: an X-ray needs at least 2 x 2 pixels; give the "
+                                "image's own size (columns, rows)")
+        width_mm, height_mm = cols * du, rows * dv
+        if max(width_mm, height_mm) > MAX_DETECTOR_MM:
+            raise GeometryError(f"pixel spacing ({du:g}, {dv:g}) mm makes the {cols}x{rows} px detector "
+                                f"{width_mm:.0f} x {height_mm:.0f} mm, larger than any C-arm detector (at most "
+                                f"{MAX_DETECTOR_MM:.0f} mm across): check --pixel-spacing-mm (detector pixels are "
+                                "about 0.1-1 mm)")
         if not (np.isfinite(u0) and np.isfinite(v0) and -0.5 <= u0 <= cols - 0.5 and -0.5 <= v0 <= rows - 0.5):
             raise GeometryError(f"principal point ({u0}, {v0}) px lies off the {cols}x{rows} detector: "
                                 "give --principal-point-px inside the image or omit it for the centre")
@@ -220,7 +238,7 @@ DEFAULT_SOD_FRACTION = 0.6  # nominal source-to-isocentre distance / SDD when no
 
 def nominal_sod_mm(sdd_mm: float, sod_mm: float | None = None) -> float:
     """The source-to-isocentre distance to use: the known one, else ``DEFAULT_SOD_FRACTION`` x SDD."""
-    return float(sod_mm) if sod_mm else DEFAULT_SOD_FRACTION * float(sdd_mm)
+    return float(sod_mm) if sod_mm is not None else DEFAULT_SOD_FRACTION * float(sdd_mm)  # 0 is refused, not replaced
 
 
 def nominal_geometry(intrinsics: CarmIntrinsics, volume, sod_mm: float | None = None) -> CarmGeometry:

@@ -33,9 +33,10 @@ against every other DRR of the database (half the grid each way, enough to find 
 
     score(o) = max_k s GC(o(R), D_k)
 
-The stored orientation must beat every other by ``CLEAR_ORIENTATION_GC``: when another orientation wins by that
-much the image is refused for registration (the pipeline's checks: ``ok`` false, "fix the display"); when the
-stored one does not lead clearly the orientation is *unclear*.
+When another orientation wins, the image is refused for registration (the pipeline's checks: ``ok`` false, "fix
+the display") and no level answer is confident. When the stored orientation wins by less than
+``CLEAR_ORIENTATION_GC`` the orientation is *unclear*: a warning, since a near-symmetric view (an AP lumbar spine)
+can look alike mirrored.
 
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
@@ -87,8 +88,8 @@ class Appearance:
 
     @property
     def trusted(self) -> bool:
-        """Polarity and orientation both clear: a level answer may be confident."""
-        return self.clear and self.orientation_clear and self.orientation == "as-stored"
+        """The polarity is clear and the image matches the CT best as stored: a level answer may be confident."""
+        return self.clear and self.orientation == "as-stored"
 
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""

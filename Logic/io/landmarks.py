@@ -26,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.errors import InputFileError, LandmarkError, quote
 from carmreg.logic.io.atomic import atomic_write_json
+from carmreg.logic.io.limits import regular_file
 from carmreg.logic.io.xray import describe
 
 LEVEL_NAMES = ([f"C{i}" for i in range(1, 8)] + [f"T{i}" for i in range(1, 14)]
@@ -41,7 +42,7 @@ def normalize_level_name(label: str) -> str:
     m = re.fullmatch(r"\s*([CTLS])\s*-?\s*(\d{1,2})\s*", str(label), flags=re.IGNORECASE)
     name = f"{m.group(1).upper()}{int(m.group(2))}" if m else None
     if name not in LEVEL_NAMES:
-        raise LandmarkError(f"landmark label {label!r} is not a vertebral level: name points C1-C7, T1-T13, "
+        raise LandmarkError(f"landmark label {quote(label)} is not a vertebral level: name points C1-C7, T1-T13, "
                             "L1-L6 or S1 (e.g. 'T12', 'L1')")
     return name
 
@@ -224,13 +225,37 @@ def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs
 
 # ----------------------------------------------------------------------------------------------- reading
 
+PLAIN_3D = "plain JSON landmarks must map level names to [x, y, z] LPS mm"
+PLAIN_2D = "plain JSON X-ray landmarks must be {\"T12\": [column, row]} or [[column, row], ...] px"
+MAX_LANDMARK_FILE_BYTES = 16 * 1024**2
+"""Largest landmark file read (a few hundred points take a few kB)."""
+
+
 def _load_json(path: Path):
-    if not path.is_file():
-        raise InputFileError(f"{path}: landmark file not found")
+    if path.is_dir():
+        raise InputFileError(f"{path}: is a folder; give the landmark file (.mrk.json or .json) itself")
+    regular_file(path, "landmark file")
+    if path.stat().st_size > MAX_LANDMARK_FILE_BYTES:
+        raise InputFileError(f"{path}: the landmark file is {path.stat().st_size / 1024**2:.0f} MB, far more than "
+                             "any list of vertebral centroids; give the right file")
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputFileError(f"{path}: not a valid JSON landmark file ({describe(exc, 80)})") from None
+    except RecursionError:
+        raise InputFileError(f"{path}: the JSON is nested too deeply to be a landmark file") from None
+    except OSError as exc:
+        raise InputFileError(f"{path}: the landmark file cannot be read ({exc.strerror or exc})") from None
+
+
+def _numbers(value, n: int, path: Path, what: str, expected: str = "") -> np.ndarray:
+    """Exactly ``n`` JSON numbers (booleans and strings are not numbers), as floats; else InputFileError
+    quoting the value. Never reshapes: ``[u, v, 0]`` is not a 2-D point."""
+    if not (isinstance(value, list | tuple) and len(value) == n
+            and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)):
+        raise InputFileError(f"{path}: {what} {quote(value)} is not {n} numbers" + (f"; {expected}" if expected
+                                                                                    else ""))
+    return np.array(value, dtype=float)
 
 
 def _require_level_keys(doc: dict, path: Path, value: str) -> None:
@@ -243,7 +268,13 @@ def _require_level_keys(doc: dict, path: Path, value: str) -> None:
             return False
 
     if doc and not any(is_level(key) for key in doc):
-        keys = ", ".join(repr(k) for k in list(doc)[:4])
+        first_key, first_value = next(iter(doc.items()))
+        if isinstance(first_value, list) and len(first_value) in (2, 3):  # points under names that are not levels
+            try:
+                normalize_level_name(first_key)
+            except LandmarkError as exc:
+                raise InputFileError(f"{path}: {exc}") from None
+        keys = ", ".join(quote(k, 30) for k in list(doc)[:4])
         raise InputFileError(f"{path}: not a landmark file: expected a Slicer .mrk.json, or JSON mapping "
                              f"level names to {value} such as {{\"T12\": [...]}}; its keys are {keys}")
 
@@ -267,12 +298,10 @@ def _control_points(doc, path: Path) -> tuple[list, dict]:
 
 def _position(point: dict, path: Path) -> np.ndarray:
     try:
-        pos = np.asarray(point["position"], dtype=float)
-        if pos.shape != (3,):
-            raise ValueError
-    except (KeyError, TypeError, ValueError):
-        raise InputFileError(f"{path}: control point {point.get('label', '?')!r} has no 3-number position") \
-            from None
+        pos = _numbers(point["position"], 3, path, "position")
+    except (KeyError, InputFileError):
+        raise InputFileError(f"{path}: control point {quote(point.get('label', '?'), 30)} has no 3-number "
+                             f"position (it has {quote(point.get('position'), 40)})") from None
     return pos
 
 
@@ -282,11 +311,8 @@ def read_landmarks_3d(path: str | Path) -> Landmarks3D:
     doc = _load_json(path)
     if isinstance(doc, dict) and "markups" not in doc:
         _require_level_keys(doc, path, "[x, y, z] LPS mm")
-        try:
-            return Landmarks3D(list(doc), [np.asarray(v, float).reshape(3) for v in doc.values()], str(path))
-        except (TypeError, ValueError):
-            raise InputFileError(f"{path}: plain JSON landmarks must map level names to [x, y, z] LPS mm") \
-                from None
+        return Landmarks3D(list(doc), [_numbers(v, 3, path, f"the position of {quote(k, 30)}", PLAIN_3D)
+                                       for k, v in doc.items()], str(path))
     points, markup = _control_points(doc, path)
     flip = np.array([-1.0, -1.0, 1.0]) if markup.get("coordinateSystem", "LPS").upper() == "RAS" else 1.0
     labels = [p.get("label", "") for p in points]
@@ -298,16 +324,13 @@ def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | 
     """Read X-ray points: .mrk.json (see module docstring), ``{"T12": [u, v]}`` or ``[[u, v], ...]``."""
     path = Path(path)
     doc = _load_json(path)
-    try:
-        if isinstance(doc, list):
-            return Landmarks2D([None] * len(doc), np.asarray(doc, float).reshape(-1, 2), str(path))
-        if isinstance(doc, dict) and "markups" not in doc:
-            _require_level_keys(doc, path, "[column, row] px")
-            return Landmarks2D(list(doc), np.array([np.asarray(v, float).reshape(2) for v in doc.values()]),
-                               str(path))
-    except (TypeError, ValueError):
-        raise InputFileError(f"{path}: plain JSON X-ray landmarks must be {{\"T12\": [column, row]}} or "
-                             "[[column, row], ...]") from None
+    if isinstance(doc, list):
+        uv = [_numbers(v, 2, path, f"unnamed click {i + 1}", PLAIN_2D) for i, v in enumerate(doc)]
+        return Landmarks2D([None] * len(doc), np.array(uv).reshape(-1, 2), str(path))
+    if isinstance(doc, dict) and "markups" not in doc:
+        _require_level_keys(doc, path, "[column, row] px")
+        uv = [_numbers(v, 2, path, f"the click {quote(k, 30)}", PLAIN_2D) for k, v in doc.items()]
+        return Landmarks2D(list(doc), np.array(uv).reshape(-1, 2), str(path))
     points, markup = _control_points(doc, path)
     spacing = _markup_spacing(markup, pixel_spacing_mm, path)
     ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
@@ -315,11 +338,8 @@ def read_landmarks_2d(path: str | Path, pixel_spacing_mm: tuple[float, float] | 
     for p in points:
         extra = p.get("carmreg")
         if isinstance(extra, dict) and "uv_px" in extra:
-            try:
-                uv.append(np.asarray(extra["uv_px"], float).reshape(2))
-            except (TypeError, ValueError):
-                raise InputFileError(f"{path}: control point {p.get('label', '?')!r} has no 2-number "
-                                     "carmreg.uv_px") from None
+            uv.append(_numbers(extra["uv_px"], 2, path,
+                               f"control point {quote(p.get('label', '?'), 30)}: carmreg.uv_px"))
         else:
             pos = _position(p, path) * (np.array([-1.0, -1.0, 1.0]) if ras else 1.0)
             uv.append(pos[:2] / np.asarray(spacing))
@@ -333,11 +353,14 @@ def _markup_spacing(markup: dict, fallback, path: Path) -> tuple[float, float]:
     spacing = (extra.get("pixel_spacing_mm") if isinstance(extra, dict) else None) or fallback
     if spacing is None:
         return 1.0, 1.0
-    try:
-        du, dv = (float(x) for x in np.asarray(spacing, dtype=float).reshape(2))
-    except (TypeError, ValueError):
-        raise InputFileError(f"{path}: carmreg.pixel_spacing_mm {str(spacing)[:40]} is not two numbers "
-                             "(column, row) mm") from None
+    if isinstance(spacing, list):
+        du, dv = _numbers(spacing, 2, path, "carmreg.pixel_spacing_mm (column, row) mm")
+    else:
+        try:
+            du, dv = (float(x) for x in np.asarray(spacing, dtype=float).reshape(2))
+        except (TypeError, ValueError):
+            raise InputFileError(f"{path}: carmreg.pixel_spacing_mm {quote(spacing, 40)} is not two numbers "
+                                 "(column, row) mm") from None
     if not (np.isfinite(du) and np.isfinite(dv) and du > 0 and dv > 0):
         raise InputFileError(f"{path}: pixel spacing ({du}, {dv}) mm for the X-ray points is not positive")
     return du, dv

@@ -41,9 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.errors import InputFileError, LandmarkError, quote
 from carmreg.logic.io.atomic import atomic_write_json, to_jsonable
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.io.limits import regular_file
 
 FORMAT_NAME = "carmreg-session"
 FORMAT_VERSION = 1
@@ -112,24 +113,83 @@ class Session:
         if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
             raise InputFileError(f"{where}: not a CarmReg session file (expected \"format\": "
                                  f"\"{FORMAT_NAME}\")")
-        if int(doc.get("version", 0)) > FORMAT_VERSION:
-            raise InputFileError(f"{where}: session version {doc.get('version')} is newer than this "
+        version = doc.get("version", 0)
+        if not isinstance(version, int) or isinstance(version, bool) or version < 0:
+            raise InputFileError(f"{where}: session \"version\" {quote(version, 40)} is not a whole number; the "
+                                 "file is damaged")
+        if version > FORMAT_VERSION:
+            raise InputFileError(f"{where}: session version {version} is newer than this "
                                  f"CarmReg understands ({FORMAT_VERSION}); update CarmReg")
         base = Path(session_path).resolve().parent if session_path else None
-        data = doc.get("data") or {}
-        landmarks = doc.get("landmarks") or {}
-        session = cls(ct_path=_resolve_entry(data.get("ct"), base),
-                      xray_path=_resolve_entry(data.get("xray"), base),
-                      geometry_overrides=dict(doc.get("geometry_overrides") or {}),
-                      ct_points=_check_ct_points(landmarks.get("ct") or [], where),
-                      xray_points=_check_xray_points(landmarks.get("xray") or [], where),
-                      parameters=dict(doc.get("parameters") or {}),
-                      last_result=doc.get("last_result"), session_file=doc.get("session_file") or None)
-        unknown = set(session.geometry_overrides) - set(GEOMETRY_FIELDS) - {"preset", "preset_fields"}
-        if unknown:
-            raise InputFileError(f"{where}: unknown geometry field(s) {sorted(unknown)}; expected "
-                                 f"{', '.join(GEOMETRY_FIELDS)}")
+        data = _mapping(doc, "data", where)
+        landmarks = _mapping(doc, "landmarks", where)
+        last_result = doc.get("last_result")
+        if last_result is not None and not isinstance(last_result, dict):
+            raise InputFileError(f"{where}: \"last_result\" {quote(last_result, 40)} is not an object")
+        session = cls(ct_path=_resolve_entry(data.get("ct"), base, where, "data.ct"),
+                      xray_path=_resolve_entry(data.get("xray"), base, where, "data.xray"),
+                      geometry_overrides=_check_overrides(_mapping(doc, "geometry_overrides", where), where),
+                      ct_points=_check_ct_points(_list(landmarks, "ct", where), where),
+                      xray_points=_check_xray_points(_list(landmarks, "xray", where), where),
+                      parameters=_mapping(doc, "parameters", where),
+                      last_result=last_result, session_file=_session_file(doc.get("session_file"), where))
         return session
+
+
+def _mapping(doc: dict, key: str, where: str) -> dict:
+    value = doc.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputFileError(f"{where}: \"{key}\" {quote(value, 40)} is not an object; the file is damaged")
+    return dict(value)
+
+
+def _list(doc: dict, key: str, where: str) -> list:
+    value = doc.get(key)
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise InputFileError(f"{where}: \"landmarks.{key}\" {quote(value, 40)} is not a list of points")
+    return value
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and bool(np.isfinite(x))
+
+
+def _check_overrides(overrides: dict, where: str) -> dict:
+    """Geometry overrides by field: numbers where numbers are meant (an error quotes the bad value)."""
+    unknown = set(overrides) - set(GEOMETRY_FIELDS) - {"preset", "preset_fields"}
+    if unknown:
+        raise InputFileError(f"{where}: unknown geometry field(s) {sorted(unknown)}; expected "
+                             f"{', '.join(GEOMETRY_FIELDS)}")
+    for key, count in (("sdd_mm", 1), ("sod_mm", 1), ("pixel_spacing_mm", 2), ("principal_point_px", 2)):
+        value = overrides.get(key)
+        if value is None:
+            continue
+        ok = _is_number(value) and value > 0 if count == 1 else (
+            (isinstance(value, list) and len(value) == 2 and all(_is_number(x) for x in value))
+            or (key == "pixel_spacing_mm" and _is_number(value)))
+        if not ok:
+            want = "a positive number of mm" if count == 1 else "two numbers"
+            raise InputFileError(f"{where}: geometry override {key} = {quote(value, 40)} is not {want}; fix or "
+                                 "remove it")
+    if "preset" in overrides and not isinstance(overrides["preset"], str | type(None)):
+        raise InputFileError(f"{where}: geometry preset {quote(overrides['preset'], 40)} is not a name")
+    fields = overrides.get("preset_fields")
+    if fields is not None and not (isinstance(fields, list) and all(isinstance(x, str) for x in fields)):
+        raise InputFileError(f"{where}: geometry preset_fields {quote(fields, 40)} is not a list of names")
+    return overrides
+
+
+def _session_file(value, where: str) -> str | None:
+    """The autosave's ``session_file`` (a path string) or None; anything else is a damaged file."""
+    if value in (None, ""):
+        return None
+    if not isinstance(value, str):
+        raise InputFileError(f"{where}: \"session_file\" {quote(value, 40)} is not a path")
+    return value
 
 
 def summarize_result(result, out_dir: str | Path | None = None) -> dict:
@@ -157,17 +217,27 @@ def save_session(path: str | Path, session: Session) -> Path:
     return atomic_write_json(path, session.to_json(path))
 
 
+MAX_SESSION_BYTES = 64 * 1024**2
+
+
 def load_session(path: str | Path) -> Session:
-    """Read a session file; raises InputFileError with the file name on any problem."""
+    """Read a session file; raises InputFileError with the file name on any problem (never another error)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputFileError(f"{path}: session file not found")
+    regular_file(path, "session file")
+    if path.stat().st_size > MAX_SESSION_BYTES:
+        raise InputFileError(f"{path}: {path.stat().st_size / 1024**2:.0f} MB is far too large for a session file")
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputFileError(f"{path}: not a readable session file ({exc.__class__.__name__}); "
                              "open another file or start a new session") from None
-    return Session.from_json(doc, path)
+    try:
+        return Session.from_json(doc, path)
+    except (TypeError, ValueError, AttributeError, KeyError, RecursionError, OverflowError) as exc:
+        raise InputFileError(f"{path}: not a valid session file ({exc.__class__.__name__}: "
+                             f"{quote(str(exc), 80)}); open another file or start a new session") from None
 
 
 # ------------------------------------------------------------------------------------------ autosave
@@ -207,6 +277,18 @@ def find_recoverable(folder: str | Path | None = None) -> list[Path]:
     return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
 
 
+def set_aside(path: str | Path) -> Path:
+    """Rename an autosave that cannot be restored to ``<name>.unreadable-<time>`` (no longer offered, kept for
+    the user); returns the new path (the old one when even the rename fails)."""
+    path = Path(path)
+    target = path.with_name(f"{path.name}.unreadable-{_dt.datetime.now():%Y%m%d-%H%M%S}")
+    try:
+        os.replace(path, target)
+    except OSError:
+        return path
+    return target
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -232,11 +314,14 @@ def _path_entry(path: str | None, base: Path | None) -> dict | None:
     return entry
 
 
-def _resolve_entry(entry, base: Path | None) -> str | None:
+def _resolve_entry(entry, base: Path | None, where: str = "session", key: str = "data") -> str | None:
     if not entry:
         return None
     if isinstance(entry, str):
         entry = {"path": entry}
+    if not isinstance(entry, dict) or not all(isinstance(entry.get(k), str | type(None))
+                                              for k in ("path", "absolute")):
+        raise InputFileError(f"{where}: \"{key}\" {quote(entry, 40)} is not a file path")
     candidates = []
     rel = entry.get("path")
     if rel:
@@ -258,28 +343,28 @@ def _sorted_points(points: list[dict]) -> list[dict]:
     return sorted(points, key=key)
 
 
+def _label(p: dict, i: int, where: str, side: str) -> str | None:
+    label = p.get("label")
+    if label is not None and not isinstance(label, str):
+        raise InputFileError(f"{where}: {side} landmark {i + 1} label {quote(label, 40)} is not a name")
+    return label or None
+
+
+def _point(p, key: str, n: int, i: int, where: str, side: str, want: str) -> list[float]:
+    value = p.get(key) if isinstance(p, dict) else None
+    if not (isinstance(value, list) and len(value) == n and all(_is_number(x) for x in value)):
+        raise InputFileError(f"{where}: {side} landmark {i + 1} needs \"{key}\": {want} (it has "
+                             f"{quote(value if isinstance(p, dict) else p, 40)})")
+    return [float(x) for x in value]
+
+
 def _check_ct_points(points, where: str) -> list[dict]:
-    out = []
-    for i, p in enumerate(points):
-        try:
-            pos = [float(x) for x in p["position_lps_mm"]]
-            if len(pos) != 3 or not np.all(np.isfinite(pos)):
-                raise ValueError
-        except (KeyError, TypeError, ValueError):
-            raise InputFileError(f"{where}: CT landmark {i + 1} needs \"position_lps_mm\": [x, y, z]") \
-                from None
-        out.append({"label": p.get("label") or None, "position_lps_mm": pos})
-    return out
+    return [{"label": _label(p, i, where, "CT"),
+             "position_lps_mm": _point(p, "position_lps_mm", 3, i, where, "CT", "[x, y, z]")}
+            for i, p in enumerate(points)]
 
 
 def _check_xray_points(points, where: str) -> list[dict]:
-    out = []
-    for i, p in enumerate(points):
-        try:
-            uv = [float(x) for x in p["uv_px"]]
-            if len(uv) != 2 or not np.all(np.isfinite(uv)):
-                raise ValueError
-        except (KeyError, TypeError, ValueError):
-            raise InputFileError(f"{where}: X-ray landmark {i + 1} needs \"uv_px\": [column, row]") from None
-        out.append({"label": p.get("label") or None, "uv_px": uv})
-    return out
+    return [{"label": _label(p, i, where, "X-ray"),
+             "uv_px": _point(p, "uv_px", 2, i, where, "X-ray", "[column, row]")}
+            for i, p in enumerate(points)]

@@ -38,6 +38,7 @@ import numpy as np
 from carmreg.logic.errors import InputFileError
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.io.limits import check_dicom_size, file_kind, inflate_exactly, read_exactly, regular_file
 from carmreg.logic.io.xray import (
     DICOM_PARSE_ERRORS,
     describe,
@@ -49,6 +50,10 @@ from carmreg.logic.io.xray import (
 
 MAX_VOLUME_BYTES = 8 * 1024**3
 """Largest volume (bytes in memory) a reader accepts."""
+MAX_CT_EXTENT_MM = 2100.0
+"""Longest CT axis accepted (a whole-body scan is about 2 m)."""
+MAX_CT_SECTION_MM2 = 1000.0 * 1000.0
+"""Largest product of the two shorter axes (a CT field of view is at most about 700 mm)."""
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 SUPPORTED = "a DICOM series folder, .nii/.nii.gz, .nrrd/.nhdr or .mha/.mhd"
 
@@ -62,10 +67,16 @@ def load_volume(path: str | Path, *, series_uid: str | None = None) -> Volume:
     path = Path(path)
     if not path.exists():
         raise InputFileError(f"{path}: CT not found; give {SUPPORTED}")
-    if not path.is_dir() and path.stat().st_size == 0:
-        raise InputFileError(f"{path}: file is empty")
+    if not path.is_dir():
+        regular_file(path, "CT")
+        if path.stat().st_size == 0:
+            raise InputFileError(f"{path}: file is empty")
     with quiet_libraries() as notes:
-        volume = _read_any(path, series_uid)
+        try:
+            volume = _read_any(path, series_uid)
+        except OSError as exc:  # permission denied, I/O error, symlink loop: one line, not a traceback
+            raise InputFileError(f"{getattr(exc, 'filename', None) or path}: the CT cannot be read "
+                                 f"({exc.strerror or exc}); check its permissions or copy it again") from None
     if notes:
         volume.meta["library_warnings"] = notes
     return volume
@@ -131,7 +142,23 @@ def _checked_volume(data: np.ndarray, affine: np.ndarray, path: Path, meta: dict
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise InputFileError(f"{path}: {int(np.count_nonzero(~np.isfinite(data)))} voxel(s) are NaN or "
                                  "infinite; fill them (e.g. with -1000 HU, air) before loading the CT")
-    return Volume(data, affine, str(path), meta)
+    volume = Volume(data, affine, str(path), meta)
+    check_extent(volume.shape, volume.spacing_mm, path)
+    return volume
+
+
+def check_extent(shape, spacing_mm, path: Path | str) -> None:
+    """Refuse a CT whose physical box is beyond any patient (spacing in um or cm written as mm): every
+    resampled level (``resample_isotropic``) is sized by this box, so it is checked before any is made."""
+    extent_mm = np.asarray(shape, float) * np.asarray(spacing_mm, float)
+    box = sorted(extent_mm)
+    if box[-1] > MAX_CT_EXTENT_MM or box[0] * box[1] > MAX_CT_SECTION_MM2:
+        spacing = ", ".join(f"{s:.4g}" for s in spacing_mm)
+        raise InputFileError(f"{path}: the CT spans {' x '.join(f'{e:.0f}' for e in extent_mm)} mm "
+                             f"({'x'.join(str(int(n)) for n in shape)} voxels of {spacing} mm), larger than a "
+                             f"patient (at most {MAX_CT_EXTENT_MM:.0f} mm long, "
+                             f"{MAX_CT_SECTION_MM2 ** 0.5:.0f} mm across): the voxel spacing in the header is "
+                             "probably not in mm (um or cm?); fix it and save the CT again")
 
 
 def _spatial_3d(data: np.ndarray, path: Path) -> np.ndarray:
@@ -229,13 +256,17 @@ def _load_nrrd(path: Path) -> Volume:
     errors = (nrrd.NRRDError, OSError, EOFError, UnicodeError, ValueError, KeyError, IndexError, TypeError,
               OverflowError, zlib.error)
     try:
-        header = nrrd.read_header(str(path))
+        with open(path, "rb") as handle:
+            header = nrrd.read_header(handle)
+            data_offset = handle.tell()
         sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
     except errors as exc:
         raise InputFileError(f"{path}: not a readable NRRD header ({describe(exc, 100)})") from None
     check_memory(sizes, 4 + _nrrd_itemsize(header), path)
     try:
-        data, header = nrrd.read(str(path), index_order="F")
+        data = _nrrd_data(path, header, data_offset, sizes)
+    except InputFileError:
+        raise
     except errors as exc:
         raise InputFileError(f"{path}: the NRRD voxel data cannot be read; the file or its data file is "
                              f"probably truncated or missing ({describe(exc, 80)})") \
@@ -243,6 +274,55 @@ def _load_nrrd(path: Path) -> Volume:
     data = as_hu(_spatial_3d(data, path))
     affine, meta = _nrrd_affine(header, path)
     return _checked_volume(data, affine, path, meta)
+
+
+def _nrrd_data(path: Path, header: dict, data_offset: int, sizes: list[int]) -> np.ndarray:
+    """The voxels (index order F), reading exactly the bytes ``sizes`` and ``type`` announce from the attached
+    data or the one regular ``data file``: raw, gzip, bzip2 (inflated with a bound) or ASCII."""
+    import bz2
+
+    from nrrd.reader import _determine_datatype
+
+    dtype = _determine_datatype(header)
+    n_values = int(np.prod(sizes, dtype=np.int64))
+    n_bytes = n_values * dtype.itemsize
+    data_name = header.get("data file", header.get("datafile"))
+    if data_name is not None:
+        if str(data_name).upper().startswith("LIST") or len(str(data_name).split()) > 1:
+            raise InputFileError(f"{path}: NRRD with one data file per slice ({data_name!r}) is not supported; "
+                                 "save it as a single .nrrd")
+        data_path = Path(data_name) if os.path.isabs(data_name) else path.parent / data_name
+        regular_file(data_path, f"NRRD data file (named in {path.name})")
+        data_offset = 0
+    else:
+        data_path = path
+    encoding = str(header.get("encoding", "raw")).lower()
+    line_skip = int(header.get("line skip", header.get("lineskip", 0)))
+    byte_skip = int(header.get("byte skip", header.get("byteskip", 0)))
+    if line_skip < 0 or byte_skip < -1:
+        raise InputFileError(f"{path}: NRRD line skip {line_skip} / byte skip {byte_skip} are not valid")
+    with open(data_path, "rb") as handle:
+        handle.seek(data_offset)
+        for _ in range(line_skip):
+            handle.readline()
+        if encoding in ("ascii", "text", "txt"):
+            values = np.fromfile(handle, dtype, count=n_values, sep=" ")
+            if values.size < n_values:
+                raise InputFileError(f"{path}: the NRRD holds {values.size} ASCII values but its header needs "
+                                     f"{n_values}; the file is truncated")
+            return values.reshape(sizes, order="F")
+        if encoding == "raw":
+            handle.seek(-n_bytes, os.SEEK_END) if byte_skip == -1 else handle.seek(byte_skip, os.SEEK_CUR)
+            raw = read_exactly(handle, n_bytes, path, "NRRD voxel data")
+        elif encoding in ("gzip", "gz", "bzip2", "bz2"):
+            skip = max(byte_skip, 0)
+            inflater = bz2.BZ2Decompressor() if encoding.startswith("bz") else zlib.decompressobj(
+                zlib.MAX_WBITS | 16)
+            raw = inflate_exactly(handle, n_bytes + skip, path, "NRRD voxel data", decompressor=inflater)
+            raw = raw[skip:] if skip else raw
+        else:
+            raise InputFileError(f"{path}: NRRD encoding {encoding!r} is not supported (raw, gzip, bzip2, ascii)")
+    return np.frombuffer(raw, dtype=dtype, count=n_values).reshape(sizes, order="F")
 
 
 def _nrrd_itemsize(header: dict) -> int:
@@ -401,36 +481,35 @@ def _metaimage_dtype(header: dict, path: Path) -> np.dtype:
     return np.dtype(METAIMAGE_TYPES[name]).newbyteorder(">" if msb else "<")
 
 
-def _metaimage_bytes(path: Path, header: dict, data_offset: int, n_bytes: int) -> bytes:
-    """The voxel bytes: LOCAL (after the header) or one external file, zlib-decompressed if needed."""
+def _metaimage_bytes(path: Path, header: dict, data_offset: int, n_bytes: int) -> bytearray:
+    """The voxel bytes: LOCAL (after the header) or one external regular file, zlib-inflated if needed;
+    exactly the ``n_bytes`` DimSize x ElementType announce are read or inflated, never more."""
     name = header["ElementDataFile"]
     if name.upper() == "LOCAL":
-        with open(path, "rb") as handle:
-            handle.seek(data_offset)
-            raw = handle.read()
+        data_path, offset = path, data_offset
     else:
         if name.upper() == "LIST" or "%" in name or len(name.split()) > 1:
             raise InputFileError(f"{path}: MetaImage with one data file per slice ({name!r}) is not "
                                  "supported; save it as a single .mha or NIfTI")
         data_path = Path(name) if os.path.isabs(name) else path.parent / name
-        if not data_path.is_file():
+        if not data_path.exists():
             raise InputFileError(f"{path}: MetaImage data file {data_path} not found; keep it beside the "
                                  "header")
-        raw = data_path.read_bytes()
-        if header.get("HeaderSize", "").strip() == "-1":  # the data are the last bytes of the file
-            raw = raw[-n_bytes:]
-        elif "HeaderSize" in header:
-            raw = raw[_ints(header, "HeaderSize", path)[0]:]
-    if header.get("CompressedData", "False").lower() == "true":
-        try:
-            raw = zlib.decompressobj(zlib.MAX_WBITS | 32).decompress(raw)
-        except zlib.error as exc:
-            raise InputFileError(f"{path}: MetaImage compressed data is corrupt ({exc}); the file is "
-                                 "probably truncated") from None
-    if len(raw) < n_bytes:
-        raise InputFileError(f"{path}: MetaImage holds {len(raw)} bytes of voxel data but its header "
-                             f"needs {n_bytes}; the file is truncated, copy it again")
-    return raw[:n_bytes]
+        regular_file(data_path, f"MetaImage data file (named in {path.name})")
+        offset = _ints(header, "HeaderSize", path)[0] if header.get("HeaderSize", "").strip() not in ("", "-1") \
+            else 0
+    compressed = header.get("CompressedData", "False").lower() == "true"
+    with open(data_path, "rb") as handle:
+        if header.get("HeaderSize", "").strip() == "-1" and not compressed:  # the data are the file's last bytes
+            if os.fstat(handle.fileno()).st_size < n_bytes:
+                raise InputFileError(f"{path}: MetaImage data file {data_path.name} is shorter than the {n_bytes} "
+                                     "bytes its header needs; the file is truncated, copy it again")
+            handle.seek(-n_bytes, os.SEEK_END)
+        else:
+            handle.seek(offset)
+        if compressed:
+            return inflate_exactly(handle, n_bytes, path, "MetaImage voxel data")
+        return read_exactly(handle, n_bytes, path, "MetaImage voxel data")
 
 
 def _metaimage_affine(header: dict, path: Path) -> np.ndarray:
@@ -556,6 +635,9 @@ def _dicom_headers(folder: Path) -> tuple[list, int]:
             if name.startswith(".") or name.upper() == "DICOMDIR":
                 continue
             path = Path(root) / name
+            if file_kind(path) is not None:  # a pipe, a device, a broken or looping symlink: never opened
+                skipped += 1
+                continue
             ds = _read_header(path, pydicom)
             if ds is None or "ImagePositionPatient" not in ds or _is_localizer(ds):
                 skipped += 1
@@ -704,7 +786,10 @@ def _read_slices(ordered: list, stored_pixels) -> np.ndarray:
     integer = all(s == 1.0 and b == round(b) for s, b in rescale)
     cols, rows = _columns_rows(first, ordered[0][0])
     hu = np.empty((cols, rows, len(ordered)), np.int16 if integer else np.float32, order="F")
-    for k, ((key, _), (slope, intercept)) in enumerate(zip(ordered, rescale, strict=True)):
+    for k, ((key, ds), (slope, intercept)) in enumerate(zip(ordered, rescale, strict=True)):
+        if isinstance(key, Path):
+            samples = dicom_int(ds, "SamplesPerPixel", 1, key)
+            check_dicom_size(key, rows, cols, 1, samples * max(1, dicom_int(ds, "BitsAllocated", 16, key) // 8))
         stored = stored_pixels(key)
         if stored.shape != (rows, cols):
             raise InputFileError(f"{key}: pixel data of shape {stored.shape} does not match Rows x Columns "

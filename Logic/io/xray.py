@@ -20,8 +20,9 @@ DICOM tags used (all optional):
 
 Pixels
 ------
-``XrayImage.pixels`` is float32 ``image[row, column]`` holding the stored values (no rescale) after the
-MONOCHROME1 inversion, so larger values are brighter as displayed.
+``XrayImage.pixels`` is float32 ``image[row, column]`` holding the stored values after the MONOCHROME1
+inversion (so larger values are brighter as displayed) and the DICOM modality LUT (``RescaleSlope`` x value +
+``RescaleIntercept``, when the file has them; recorded in ``meta["modality_lut"]``).
 
 Display polarity ``bone_dark``: what the file says
 ---------------------------------------------------
@@ -56,6 +57,7 @@ import numpy as np
 from carmreg.logic.errors import GeometryError, InputFileError
 from carmreg.logic.geometry.camera import CarmIntrinsics
 from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.io.limits import check_dicom_size, regular_file
 
 DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
@@ -233,13 +235,17 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
     path = Path(path)
     _check_file(path)
     with quiet_libraries() as notes:
-        if _is_dicom(path):
-            image = _read_dicom(path, frame)
-        elif path.suffix.lower() in IMAGE_SUFFIXES:
-            image = _read_raster(path, frame)
-        else:
-            raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
-                                 "PNG/TIFF/JPEG")
+        try:
+            if _is_dicom(path):
+                image = _read_dicom(path, frame)
+            elif path.suffix.lower() in IMAGE_SUFFIXES:
+                image = _read_raster(path, frame)
+            else:
+                raise InputFileError(f"{path}: unknown X-ray format {path.suffix!r}; give a DICOM file or a "
+                                     "PNG/TIFF/JPEG")
+        except OSError as exc:  # permission denied, I/O error: one line, not a traceback
+            raise InputFileError(f"{path}: the X-ray file cannot be read ({exc.strerror or exc}); check its "
+                                 "permissions or copy it again") from None
     if notes:
         image.meta["library_warnings"] = notes
     manual = {"sdd_mm": sdd_mm, "pixel_spacing_mm": _spacing_pair(pixel_spacing_mm),
@@ -269,6 +275,7 @@ def _check_file(path: Path) -> None:
         raise InputFileError(f"{path}: X-ray file not found")
     if path.is_dir():
         raise InputFileError(f"{path}: is a folder; give one X-ray file (DICOM, PNG, TIFF or JPEG)")
+    regular_file(path, "X-ray file")
     if path.stat().st_size == 0:
         raise InputFileError(f"{path}: X-ray file is empty")
 
@@ -363,7 +370,10 @@ def _select_frame(stack: np.ndarray, frame: int | None, path: Path) -> tuple[np.
             raise InputFileError(f"{path}: holds {n} frames; choose one with --frame N (0 to {n - 1}), "
                                  "e.g. the last, sharpest frame of a fluoroscopy run")
         frame = 0
-    if not -n <= frame < n:
+    if frame < 0:
+        raise InputFileError(f"{path}: --frame {frame}: frames are counted from 0 (the first) to {n - 1} (the "
+                             "last); give a frame number in that range")
+    if not frame < n:
         raise InputFileError(f"{path}: frame {frame} does not exist; the file holds {n} frame(s), "
                              f"choose --frame 0 to {n - 1}")
     return stack[frame], frame % n
@@ -401,6 +411,7 @@ def _read_dicom(path: Path, frame: int | None) -> _Partial:
     if monochrome1:
         pixels = _invert_monochrome1(pixels, ds, path)
         meta["note_inverted"] = "MONOCHROME1: stored values inverted so that larger = brighter"
+    pixels = _modality_lut(pixels, ds, frame, path, meta)
     if dropped:
         meta["warning_unreadable_elements"] = ", ".join(dropped[:6]) + (" ..." if len(dropped) > 6 else "")
     part = _Partial(pixels, True, meta=meta)
@@ -409,10 +420,34 @@ def _read_dicom(path: Path, frame: int | None) -> _Partial:
     return part
 
 
+def _modality_lut(pixels: np.ndarray, ds, frame: int, path: Path, meta: dict) -> np.ndarray:
+    """Apply the DICOM modality LUT ``value = RescaleSlope * stored + RescaleIntercept`` (top level or this
+    frame's functional group), so the image is in the modality's units, as every DICOM viewer shows it.
+    Linear with a positive slope, it commutes with the MONOCHROME1 inversion applied before."""
+    slope = dicom_numbers(_find(ds, "RescaleSlope", frame), 1, "RescaleSlope", path)
+    intercept = dicom_numbers(_find(ds, "RescaleIntercept", frame), 1, "RescaleIntercept", path)
+    slope = 1.0 if slope is None else float(slope[0])
+    intercept = 0.0 if intercept is None else float(intercept[0])
+    if not (np.isfinite(slope) and np.isfinite(intercept) and slope != 0):
+        raise InputFileError(f"{path}: DICOM RescaleSlope {slope:g} / RescaleIntercept {intercept:g} cannot map "
+                             "the stored values; the header is damaged, export the X-ray again")
+    if slope == 1.0 and intercept == 0.0:
+        return pixels
+    meta["modality_lut"] = {"slope": slope, "intercept": intercept}
+    return (pixels * np.float32(slope) + np.float32(intercept)).astype(np.float32)
+
+
 def _dcmread(path: Path):
     import pydicom
 
     try:
+        head = pydicom.dcmread(path, force=True, stop_before_pixels=True)
+        if "Rows" in head and "Columns" in head:  # before pydicom reads the whole file into memory
+            frames = dicom_int(head, "NumberOfFrames", 1, path)
+            per_pixel = dicom_int(head, "SamplesPerPixel", 1, path) * max(1, dicom_int(head, "BitsAllocated", 16,
+                                                                                      path) // 8)
+            check_dicom_size(path, dicom_int(head, "Rows", 0, path), dicom_int(head, "Columns", 0, path), frames,
+                             per_pixel)
         ds = pydicom.dcmread(path, force=True)
     except DICOM_PARSE_ERRORS as exc:
         raise InputFileError(f"{path}: not a readable DICOM file ({describe(exc, 100)})") from None

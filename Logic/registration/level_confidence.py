@@ -16,7 +16,7 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      clicks fitted 3.19 mm against 1.66 mm, one level off);
    - stability: the leading two labellings were refitted, each from the other's pose, and the same one led;
    - appearance: the X-ray's polarity was clear (or set by the user and not contradicted) and it matches the CT
-     as stored, clearly better than mirrored or turned (``image.appearance``).
+     best as stored, not mirrored or turned (``image.appearance``).
 
    Any failed check turns the verdict into **ambiguous**, with the reasons in words.
 

@@ -67,6 +67,7 @@ from carmreg.logic.registration.levels import (
     identify_from_image,
     identify_levels,
 )
+from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 from carmreg.logic.registration.spatial import SpatialResult, spatial_search
 from carmreg.logic.similarity.metrics import METRICS
 
@@ -213,6 +214,8 @@ class CarmRegLogic:
         if intrinsics.size_px != xray.size_px:
             raise RegistrationError(f"the geometry's detector size {intrinsics.size_px} px differs from the "
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
+        check_xray_content(xray.pixels, xray.source)
+        check_ct_content(ct.hu, ct.source)
         pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
         _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
@@ -498,7 +501,9 @@ class CarmRegLogic:
             level_check=state.identification.as_dict() if state.identification else None,
             appearance=state.appearance, field_mask=state.mask,
             inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
-                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources)})
+                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
+                    "xray_frame": state.xray.meta.get("frame"),
+                    "xray_frames_in_file": state.xray.meta.get("n_frames")})
 
     def _checks(self, state: RegistrationState, pose: CarmPose) -> list[str]:
         """The pipeline's own sanity checks; any message here makes ``ok`` False."""

@@ -1,6 +1,7 @@
 """Write a registration result: result.json, overlay, DRR (PNG + NRRD with geometry), .tfm, figures.
 
-Files (all written atomically into ``out_dir``):
+Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.transaction``; plus its
+``carmreg-manifest.json`` naming and checksumming every file):
 - ``result.json``: ``ok`` and ``warnings``; ``level_check`` (which vertebra is which: the mode - named,
   partly_named, unnamed or image_only -, the names assigned to the clicks, the winner and runner-up labellings,
   the margin between them and the status confident / ambiguous / contradicted / proposed (no clicks); see
@@ -33,8 +34,10 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from carmreg.logic import __version__
+from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
+from carmreg.logic.io.transaction import FolderTransaction
 
 FITTED_RGB = (40, 220, 90)
 CLICK_RGB = (255, 60, 60)
@@ -257,6 +260,11 @@ def similarity_figure(result) -> bytes:
     return data
 
 
+RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm", "convergence.png",
+                "similarity_maps.png", "slicer", "report.pdf")
+"""Every name ``save_result`` has written (an old folder's copies are replaced or removed, never kept)."""
+
+
 def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
     """The registration's exposed field when it was of these pixels, else found again."""
     mask = getattr(result, "field_mask", None)
@@ -265,14 +273,28 @@ def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
 
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 ct=None, ct_landmarks=None) -> dict:
-    """Write every output file; returns {name: path}. ``xray_pixels``: the X-ray as stored (shown as stored).
-    Given the CT (``Volume``) and its ``Landmarks3D``, also the 3D Slicer scene ``slicer/CarmReg.mrml`` with its
-    files (``slicer_scene``)."""
+    """Write every output file as one transaction (``FolderTransaction``): ``out_dir`` then holds exactly this
+    result's files (and the user's own), or - after a failure, a full disk or a kill at any moment - exactly
+    what it held before. Returns {name: final path}. Anything written under ``out`` in ``_write_result_files``
+    (subfolders too) goes into the transaction. A failure to write raises CarmRegError naming the folder.
+
+    ``xray_pixels``: the X-ray as stored (shown as stored). Given the CT (``Volume``) and its ``Landmarks3D``,
+    also the 3D Slicer scene ``slicer/CarmReg.mrml`` with its files (``slicer_scene``)."""
+    target = Path(out_dir)
+    try:
+        with FolderTransaction(target, owned_names=RESULT_FILES) as out:
+            paths = _write_result_files(result, out, xray_pixels, clicked, ct, ct_landmarks)
+    except OSError as exc:
+        raise CarmRegError(f"{target}: could not write the results ({exc.strerror or exc}); the folder still "
+                           "holds its previous content: free some space or choose another --out") from None
+    return {name: target / Path(path).relative_to(out) for name, path in paths.items()}
+
+
+def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None, ct,
+                        ct_landmarks) -> dict:
     from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
                                                                     result.levels, clicked,

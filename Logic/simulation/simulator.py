@@ -60,6 +60,7 @@ from carmreg.logic.io.landmarks import (
     write_landmarks_2d,
     write_landmarks_3d,
 )
+from carmreg.logic.jit import njit
 
 GROUND_TRUTH_SCHEMA = "carmreg-ground-truth/1"
 
@@ -382,7 +383,7 @@ def add_kwire(line: np.ndarray, wire: Kwire, geometry: CarmGeometry, pose: CarmP
     line[v_lo:v_hi, u_lo:u_hi] += (mu_per_mm * chord).reshape(vv.shape).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _refine_last_axis(src, f, out):
     """out[a, b, m] = linear interpolation of src[a, b, :] at x = (m + 0.5) / f - 0.5 (clamped)."""
     n0, n1, n = src.shape

@@ -97,7 +97,9 @@ def run(ct, centroids, sim, xray, clicks, params) -> dict:
             "offset": level_offset(result.projection_matrix, centroids, truth),
             "unfitted_mm": score["unfitted_pde_pose_mm"],
             "landmark_unfitted_mm": landmark["unfitted_pde_pose_mm"] if landmark else None,
-            "stage_seconds": {k: s.seconds for k, s in stages.items()}}
+            "stage_seconds": {k: s.seconds for k, s in stages.items()},
+            "reasons": lc.get("reasons"), "checks": lc.get("checks"),
+            "appearance": result.appearance.as_dict() if result.appearance is not None else None}
 
 
 def _pct(values, q) -> str:

@@ -56,3 +56,35 @@ def test_broken_input_gives_one_dialog_and_keeps_the_session(window, synthetic_c
     assert details is None and "Traceback" not in message  # a user error, not a crash
     assert "\n" not in message.strip()
     assert (window.ct_volume, window.xray, len(window.ct_store.to_landmarks().labels)) == before
+
+
+def _session(field: str) -> str:
+    return ('{"format": "carmreg-session", "landmarks": {"ct": [{"label": "T1", "position_lps_mm": [0, 0, 0]}]}, '
+            + field + "}")
+
+
+BAD_SESSIONS = {  # issue 14
+    "sdd text": ("sdd.carmreg.json", '"geometry_overrides": {"sdd_mm": "abc"}'),
+    "version text": ("version.carmreg.json", '"version": "abc"'),
+    "data list": ("list.carmreg.json", '"data": [1]'),
+    "deep nesting": ("deep.carmreg.json", '"last_result": ' + "[" * 100_000 + "]" * 100_000),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_SESSIONS))
+def test_damaged_session_gives_one_dialog_and_keeps_the_scene(window, synthetic_case, tmp_path, name):
+    """A damaged session is refused whole before anything is cleared (was: CT only, X-ray and points gone; or
+    an "Unexpected error" dialog with a traceback)."""
+    window.load_ct(synthetic_case.ct_path)
+    window.load_xray(synthetic_case.xray_path)
+    before = (window.ct_volume, window.xray, len(window.ct_store.to_landmarks().labels))
+    file_name, field = BAD_SESSIONS[name]
+    path = _text(tmp_path / file_name, _session(field))
+    window.dialogs.answers["question"] = ["Discard"]
+    window.dialogs.answers["open_file"] = [str(path)]
+    window._action_open_session()
+    errors = [m for m in window.dialogs.messages if path.name in m[1]]
+    assert len(errors) == 1, window.dialogs.messages
+    title, message, details = errors[0]
+    assert details is None and "Traceback" not in message and "Unexpected" not in message
+    assert (window.ct_volume, window.xray, len(window.ct_store.to_landmarks().labels)) == before

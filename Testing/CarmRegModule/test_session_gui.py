@@ -193,3 +193,35 @@ def test_propose_centroids_from_a_vertebra_label_map(window, synthetic_case, tmp
         assert np.linalg.norm(window.ct_store.find(name).position - centre) < 1.5  # mm, voxel-grid centroid
     window.undo_stack.undo()
     assert window.ct_store.labels() == ["T11"]
+
+
+BAD_AUTOSAVES = {
+    "sdd_text": {"geometry_overrides": {"sdd_mm": "abc"}},
+    "version_text": {"version": "abc"},
+    "data_list": {"data": [1, 2]},
+    "deep": None,  # 100 000 nested brackets
+    "missing_ct": {"data": {"ct": {"path": "/nonexistent/ct.nrrd"}}},
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_AUTOSAVES))
+def test_a_bad_autosave_never_stops_the_window_and_is_set_aside(window, tmp_path, case):
+    """Recovery of a damaged autosave: at most one dialog without a traceback, the window keeps working, the
+    autosave is renamed ``*.unreadable-*`` so the next start does not offer (and fail on) it again."""
+    state = tmp_path / "state"
+    state.mkdir(exist_ok=True)
+    path = state / "autosave-9999999.carmreg.json"
+    change = BAD_AUTOSAVES[case]
+    if change is None:
+        path.write_text('{"format": "carmreg-session", "data": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    else:
+        path.write_text(json.dumps({"format": "carmreg-session", "version": 1, **change}))
+    window.dialogs.answers["question"] = ["Recover"]
+    assert window.offer_recovery() is False or case == "missing_ct"
+    assert not path.exists()
+    errors = [m for m in window.dialogs.messages if "Traceback" in " ".join(filter(None, m))]
+    assert errors == []
+    if case != "missing_ct":
+        assert len(list(state.glob("autosave-9999999.carmreg.json.unreadable-*"))) == 1
+        assert "could not be restored" in window.dialogs.messages[-1][1]
+    assert window.offer_recovery() is False  # nothing offered at the next start

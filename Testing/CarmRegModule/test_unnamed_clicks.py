@@ -239,7 +239,8 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
              "click_indices": list(range(len(assigned)) if click_indices is None else click_indices)}
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=[], levels=levels, drr_line_integral=None, convergence=[],
-                           ok=status != "contradicted", warnings=[], magnification=1.6, level_check=check)
+                           ok=status != "contradicted", warnings=[], magnification=1.6, level_check=check,
+                           appearance=None, field_mask=None)
 
 
 def test_assigned_names_show_on_the_clicks_and_can_be_accepted_and_undone(xray_window):

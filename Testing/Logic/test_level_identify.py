@@ -232,8 +232,8 @@ def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_w
     from carmreg.logic.registration.pipeline import CarmRegLogic
 
     ct, _, centroids = sample
-    xray = XrayImage(np.ones((200, 200), np.float32), CarmIntrinsics(1000.0, (1.0, 1.0), (200, 200)), 600.0, True,
-                     "xr")
+    ramp = np.tile(np.linspace(100.0, 200.0, 200, dtype=np.float32), (200, 1))  # structured: passes the content check
+    xray = XrayImage(ramp, CarmIntrinsics(1000.0, (1.0, 1.0), (200, 200)), 600.0, True, "xr")
     clicks = Landmarks2D(["T12", None, "T11"], np.array([[100.0, 40.0], [100.0, 90.0], [100.0, 140.0]]))
     with pytest.raises(LandmarkError, match="do not fit consecutive vertebrae in spine order"):
         CarmRegLogic().prepare(ct, centroids, xray, clicks)

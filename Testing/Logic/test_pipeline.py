@@ -121,6 +121,9 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
         assert np.allclose(uv, level["uv_px"], atol=1e-6)
     assert {s["name"] for s in doc["stages"]} == set(STAGES)
     assert doc["reproducibility"]["seed"] == result.parameters.fine.seed
+    assert doc["inputs"]["xray_frame"] == 0 and doc["inputs"]["xray_frames_in_file"] == 1
+    manifest = json.loads((tmp_path / "carmreg-manifest.json").read_text())["files"]
+    assert {p.name for p in paths.values()} <= set(manifest)
     for key in ("overlay", "drr_png", "drr_nrrd", "tfm", "convergence"):
         assert paths[key].stat().st_size > 0
 

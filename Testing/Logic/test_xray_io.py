@@ -153,7 +153,8 @@ def test_multiframe_needs_a_frame(xa_path, pixels):
     image = load_xray(xa_path, frame=2)
     np.testing.assert_array_equal(image.pixels, pixels + 2)
     assert image.meta["frame"] == 2 and image.meta["n_frames"] == 3 and image.intrinsics is not None
-    assert load_xray(xa_path, frame=-1).meta["frame"] == 2
+    with pytest.raises(InputFileError, match="--frame -1: frames are counted from 0"):  # never "the last"
+        load_xray(xa_path, frame=-1)
     with pytest.raises(InputFileError, match="frame 3 does not exist"):
         load_xray(xa_path, frame=3)
 
