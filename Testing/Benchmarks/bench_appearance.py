@@ -1,0 +1,470 @@
+"""Benchmark: level names and pose on X-rays whose appearance CarmReg was not tuned on (issue 11, item 4).
+
+Not a test: run it by hand (long; resumable: cases already in the JSON are skipped)::
+
+    .venv/bin/python Testing/Benchmarks/bench_appearance.py --cases 24 --modes unnamed,named,wrong \\
+        --out Testing/Benchmarks
+
+Cases alternate between the sample chest CT (T1-L1) and the second CT (``second_ct.py``, L1-S1, 3 mm voxels;
+skipped when ../shared is absent): every third case (index % 3 == 2) uses the second CT. Each case: a pose and
+per-level motion drawn as bench_levels draws them, rendered on an image intensifier and on a flat panel, then
+every variant of ``appearance.VARIANTS`` (an appearance chain written independently of CarmReg's simulator:
+see ``appearance.py``) is stored as a real file (16-bit PNG, TIFF, 8-bit JPEG, DICOM with and without
+PixelIntensityRelationshipSign, MONOCHROME1) and registered by ``carmreg register`` **as a subprocess** (the
+whole process, the DRR database cached in ``--cache-dir``), in the modes:
+
+- ``unnamed``: the three clicks without names; ``named``: the right names; ``wrong``: every name one level off
+  (up or down at random); ``none``: no clicks.
+
+Halves: even case index = "tune" (for choosing thresholds), odd = "report" (the figures quoted). The answer's
+labels are right when: unnamed, the assigned labels are the true ones; named / wrong, the names given are
+(always / never); none, every visible level is named correctly by the found pose. Pose-PDE: every visible level
+not clicked, CT centroid projected with the found and the true P (mirrored display: the true P flipped), mm on the
+detector. Polarity: ``result.json["appearance"]["polarity"]`` when present, else what the reader assumed
+(``load_xray(...).bone_dark``, marked "assumed").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import appearance as app  # noqa: E402
+from bench_registration import load_case  # noqa: E402
+from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load_second_ct  # noqa: E402
+
+from carmreg.logic.geometry.camera import project  # noqa: E402
+from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
+from carmreg.logic.registration.labellings import shifted_labels  # noqa: E402
+from carmreg.logic.resources import sample_case  # noqa: E402
+from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
+
+MODES = ("unnamed", "named", "wrong", "none")
+STATUSES = ("confident", "ambiguous", "contradicted", "proposed")
+RESULTS = "results_appearance"
+
+
+def half(case: int) -> str:
+    return "tune" if case % 2 == 0 else "report"
+
+
+# ----------------------------------------------------------------------------------------------- cases
+
+class CaseMaker:
+    """Builds the scenes of a case (both detectors) from the CTs, once per case."""
+
+    def __init__(self):
+        sample = sample_case()
+        self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
+        second = load_second_ct()
+        if second is not None:
+            self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
+        self.parts = {}
+
+    def ct_name(self, case: int) -> str:
+        return "abdomen" if "abdomen" in self.cts and case % 3 == 2 else "chest"
+
+    def scenes(self, case: int, detectors: set[str]) -> dict[str, app.Scene]:
+        """The case's scene on each detector (a new pose is drawn until both show 3 adjacent levels)."""
+        name = self.ct_name(case)
+        (ct, labels, centroids), _, _ = self.cts[name]
+        if name not in self.parts:
+            self.parts[name] = app.split_mu(ct.hu)
+        rng = np.random.default_rng(7000 + case)
+        for _ in range(20):
+            pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids)
+            try:
+                return {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
+                                          app.DETECTORS[d], rng) for d in sorted(detectors)}
+            except LookupError:
+                continue
+        raise RuntimeError(f"case {case}: no pose with 3 adjacent visible levels in 20 draws")
+
+    def files(self, case: int) -> tuple[Path, Path, list[str]]:
+        """(CT path, CT landmarks path, CT level names) for the command line."""
+        name = self.ct_name(case)
+        (_, _, centroids), ct_path, lm_path = self.cts[name]
+        return ct_path, lm_path, list(centroids.sorted().labels)
+
+
+def write_variant(scene: app.Scene, variant: app.Variant, case: int, folder: Path) -> dict:
+    """Render and store one variant of a case: the X-ray file, truth.json, clicks; returns the case record."""
+    base = app.base_look(np.random.default_rng(9000 + case), scene.detector)
+    rng = np.random.default_rng([9100 + case, list(app.VARIANTS).index(variant.name)])
+    look = app.variant_look(base, variant, rng)
+    pixels = app.render(scene, look, rng)
+    xray = app.write_xray(folder / "xray", pixels, scene.detector, look)
+    truth = app.truth_dict(scene, look.mirrored)
+    truth["look"] = dataclasses.asdict(look)
+    truth["bone_bright_displayed"] = look.bone_bright
+    atomic_write_json(folder / "truth.json", truth)
+    return {"xray": xray, "truth": truth, "look": look}
+
+
+def clicks_file(mode: str, truth: dict, ct_labels: list[str], folder: Path, rng) -> tuple[Path | None, list]:
+    """(clicks JSON for the mode or None for no clicks, the names given)."""
+    uv = truth["clicks_uv_px"]
+    if mode == "none":
+        return None, []
+    if mode == "unnamed":
+        doc, given = uv, [""] * len(uv)
+    else:
+        labels = list(truth["clicked"])
+        if mode == "wrong":
+            labels = next((s for s in (shifted_labels(labels, k, ct_labels) for k in
+                                       ((1, -1) if rng.random() < 0.5 else (-1, 1))) if s is not None), None)
+            if labels is None:
+                return None, ["<no shift possible>"]
+        doc, given = {lb: p for lb, p in zip(labels, uv, strict=True)}, labels
+    path = folder / f"clicks_{mode}.json"
+    atomic_write_text(path, json.dumps(doc))
+    return path, given
+
+
+# ----------------------------------------------------------------------------------------------- one run
+
+def register(xray: Path, ct: Path, ct_lm: Path, clicks: Path | None, out: Path, detector: app.Detector,
+             cache_dir: str, timeout_s: float) -> tuple[int, float, str]:
+    """Run ``carmreg register`` as a subprocess: (exit code, seconds, last stderr line)."""
+    cmd = [str(Path(sys.executable).with_name("carmreg")), "register", "--ct", str(ct), "--ct-landmarks",
+           str(ct_lm), "--xray", str(xray), "--out", str(out), "--cache-dir", cache_dir]
+    cmd += ["--xray-landmarks", str(clicks)] if clicks is not None else ["--no-clicks"]
+    if xray.suffix != ".dcm":
+        cmd += ["--sdd-mm", str(detector.sdd_mm), "--pixel-spacing-mm", str(detector.pixel_mm)]
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        code, err = proc.returncode, proc.stderr
+    except subprocess.TimeoutExpired:
+        code, err = -9, f"timeout after {timeout_s:.0f} s"
+    seconds = time.perf_counter() - t0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    return code, seconds, (lines[-1] if lines else "")[:300]
+
+
+def polarity_read(result: dict, xray: Path, detector: app.Detector) -> tuple[str | None, str]:
+    """(decided polarity 'bone-dark'/'bone-bright', where from)."""
+    app = result.get("appearance") if isinstance(result.get("appearance"), dict) else None
+    if app and app.get("polarity") in ("bone-dark", "bone-bright"):
+        return app["polarity"], "result.json appearance"
+    from carmreg.logic.io.xray import load_xray
+
+    try:
+        x = load_xray(xray, sdd_mm=None if xray.suffix == ".dcm" else detector.sdd_mm,
+                      pixel_spacing_mm=None if xray.suffix == ".dcm" else detector.pixel_mm)
+    except Exception:  # noqa: BLE001 - a refused file has no polarity
+        return None, "file refused"
+    return ("bone-dark" if x.bone_dark else "bone-bright"), "assumed by the reader"
+
+
+def level_offset(P: np.ndarray, centroids: dict, truth: dict) -> int | None:
+    """Most common level offset between where the found pose puts each visible level and the true level nearest
+    to it (0 = right names)."""
+    visible = [lb for lb in centroids if truth["levels"].get(lb, {}).get("visible")]
+    if not visible:
+        return None
+    true_uv = np.array([truth["levels"][lb]["uv_true_px"] for lb in visible])
+    offsets = [int(np.argmin(np.linalg.norm(true_uv - project(P, centroids[lb][None])[0], axis=1))) - k
+               for k, lb in enumerate(visible)]
+    values, counts = np.unique(offsets, return_counts=True)
+    return int(values[np.argmax(counts)])
+
+
+def score(mode: str, code: int, result: dict | None, truth: dict, given: list, centroids: dict) -> dict:
+    """The run's answer against the truth (module docstring)."""
+    row: dict = {"exit": code}
+    if result is None or "projection_matrix" not in result:
+        return {**row, "status": "refused" if code == 2 else "failed", "answer_right": False}
+    lc = result.get("level_check") or {}
+    row.update(ok=result.get("ok"), status=lc.get("status"), margin=lc.get("margin"),
+               assigned=lc.get("assigned_labels"), winner=lc.get("winner_labels"),
+               warnings=result.get("warnings", [])[:4], appearance=result.get("appearance"))
+    stages = {st.get("name"): st for st in result.get("stages", [])}
+    row["stage_seconds"] = {k: st.get("seconds") for k, st in stages.items()}
+    row["db_from_cache"] = stages.get("database", {}).get("from_cache")
+    P = np.asarray(result["projection_matrix"], float)
+    clicked = set(truth["clicked"]) if mode != "none" else set()
+    ev = evaluate(P, centroids, truth, clicked)
+    row.update(unfitted_pde_mm=ev["unfitted_pde_pose_mm"], all_named_correctly=ev["all_named_correctly"],
+               offset=level_offset(P, centroids, truth))
+    row["winner_right"] = row["winner"] == truth["clicked"] if mode != "none" else ev["all_named_correctly"]
+    if mode == "unnamed":
+        row["answer_right"] = row["assigned"] == truth["clicked"]
+    elif mode in ("named", "wrong"):
+        row["answer_right"] = list(given) == truth["clicked"]
+    else:
+        row["answer_right"] = bool(ev["all_named_correctly"])
+    return row
+
+
+def run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
+    """One registration, scored; an error of the benchmark itself is recorded as a failed run."""
+    try:
+        return _run_one(job, cache_dir, timeout_s)
+    except Exception as exc:  # noqa: BLE001 - keep a long run going; the row says what broke
+        return {"case": job["case"], "half": half(job["case"]), "ct": job["ct_name"], "variant": job["variant"],
+                "mode": job["mode"], "seconds": float("nan"), "truth_labels": job["truth"]["clicked"],
+                "given": job["given"], "stderr": f"benchmark error: {type(exc).__name__}: {exc}"[:300],
+                "exit": None, "status": "failed", "answer_right": False, "polarity": None,
+                "polarity_right": None}
+
+
+def _run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
+    (job["out"] / "result.json").unlink(missing_ok=True)
+    code, seconds, err = register(job["xray"], job["ct"], job["ct_lm"], job["clicks"], job["out"], job["detector"],
+                                  cache_dir, timeout_s)
+    result = None
+    result_path = job["out"] / "result.json"
+    if code in (0, 1) and result_path.is_file():
+        result = json.loads(result_path.read_text())
+    row = {"case": job["case"], "half": half(job["case"]), "ct": job["ct_name"], "variant": job["variant"],
+           "mode": job["mode"], "seconds": seconds, "truth_labels": job["truth"]["clicked"], "given": job["given"],
+           "stderr": err if code not in (0, 1) else ""}
+    row.update(score(job["mode"], code, result, job["truth"], job["given"], job["centroids"]))
+    decided, source = polarity_read(result or {}, job["xray"], job["detector"]) if result else (None, "no result")
+    truth_pol = "bone-bright" if job["truth"]["bone_bright_displayed"] else "bone-dark"
+    row.update(polarity=decided, polarity_source=source, polarity_truth=truth_pol,
+               polarity_right=None if decided is None else decided == truth_pol)
+    return row
+
+
+# ----------------------------------------------------------------------------------------------- summary
+
+def _pct(values, q) -> str:
+    return f"{np.percentile(values, q):.2f}" if len(values) else "-"
+
+
+def summarize(rows: list[dict], which: str = "report") -> str:
+    """Markdown tables of the ``which`` half ('report', 'tune' or 'all')."""
+    sel = [r for r in rows if which == "all" or r["half"] == which]
+    if not sel:
+        return f"**{which} half**: no runs yet.\n"
+    cases = sorted({(r["case"], r["ct"]) for r in sel})
+    by_ct = {ct: sum(c[1] == ct for c in cases) for ct in sorted({c[1] for c in cases})}
+    variants = [v for v in app.VARIANTS if any(r["variant"] == v for r in sel)]
+    modes = [m for m in MODES if any(r["mode"] == m for r in sel)]
+    lines = [f"**{which} half**: {len(cases)} cases ({', '.join(f'{k} {v}' for k, v in by_ct.items())}), "
+             f"{len(variants)} variants, modes {', '.join(modes)}; {len(sel)} runs of `carmreg register`.", ""]
+    lines += ["| variant | mode | n | answer right | CONFIDENT and wrong | ambiguous | contradicted | refused / "
+              "failed | polarity right | s per run, median (max) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for v in variants:
+        for m in modes:
+            runs = [r for r in sel if r["variant"] == v and r["mode"] == m]
+            if runs:
+                lines.append(_row(v, m, runs))
+    lines += ["", "Reliability (all modes): status against the answer's labels, right / wrong.", "",
+              "| variant | " + " | ".join(STATUSES) + " | refused / failed |", "|---|" + "---|" * (len(STATUSES) + 1)]
+    for v in variants + ["**all**"]:
+        runs = [r for r in sel if r["variant"] == v or v == "**all**"]
+        cells = [f"{sum(r['status'] == s and r['answer_right'] for r in runs)} / "
+                 f"{sum(r['status'] == s and not r['answer_right'] for r in runs)}" for s in STATUSES]
+        bad = sum(r["status"] in ("refused", "failed") for r in runs)
+        lines.append(f"| {v} | " + " | ".join(cells) + f" | {bad} |")
+    lines += ["", "Per CT (all variants): unnamed clicks named right; CONFIDENT and wrong in any mode.", "",
+              "| CT | unnamed right | CONFIDENT and wrong |", "|---|---|---|"]
+    for ct in by_ct:
+        unnamed = [r for r in sel if r["ct"] == ct and r["mode"] == "unnamed"]
+        bad = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in sel if r["ct"] == ct)
+        lines.append(f"| {ct} | {sum(r['answer_right'] for r in unnamed)} / {len(unnamed)} | {bad} |")
+    flipped = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("mirrored")]
+    if flipped:
+        lines += ["", f"Mirrored display: {sum(r['status'] == 'confident' for r in flipped)} of {len(flipped)} "
+                  "runs CONFIDENT (issue 11: a flipped image is detected and registered, or refused; never named "
+                  "with confidence)."]
+    lines += ["", "Levels not clicked: pose-PDE, found vs true pose (detector mm), modes unnamed + named.", "",
+              "| variant | levels | median | 95th pct | max | within 5 mm |", "|---|---|---|---|---|---|"]
+    for v in variants + ["**all**"]:
+        vals = np.concatenate([r["unfitted_pde_mm"] for r in sel if (r["variant"] == v or v == "**all**")
+                               and r["mode"] in ("unnamed", "named") and r.get("unfitted_pde_mm")] or [[]])
+        if len(vals):
+            lines.append(f"| {v} | {len(vals)} | {np.median(vals):.2f} | {_pct(vals, 95)} | {vals.max():.2f} | "
+                         f"{np.mean(vals < 5) * 100:.0f} % |")
+    secs = [r["seconds"] for r in sel if _timed(r)]
+    if secs:
+        built = sum(r.get("db_from_cache") is False for r in sel)
+        lines += ["", f"Time per run (the whole `carmreg register` process, database cached; {built} runs that "
+                  f"built a database left out): median {np.median(secs):.1f} s, max {max(secs):.1f} s over "
+                  f"{len(secs)} runs, on a machine shared with other work."]
+    return "\n".join(lines) + "\n"
+
+
+def _timed(r: dict) -> bool:
+    """A run whose time counts: it registered (not refused) with the database from the cache."""
+    return r["status"] != "refused" and np.isfinite(r["seconds"]) and r.get("db_from_cache") is not False
+
+
+def _row(variant: str, mode: str, runs: list[dict]) -> str:
+    n = len(runs)
+    right = sum(r["answer_right"] for r in runs)
+    conf_wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in runs)
+    amb = sum(r["status"] == "ambiguous" for r in runs)
+    contra = sum(r["status"] == "contradicted" for r in runs)
+    bad = sum(r["status"] in ("refused", "failed") for r in runs)
+    pol = [r for r in runs if r.get("polarity_right") is not None]
+    assumed = any(r.get("polarity_source") == "assumed by the reader" for r in pol)
+    pol_txt = f"{sum(r['polarity_right'] for r in pol)} / {len(pol)}{' (assumed)' if assumed else ''}" if pol else "-"
+    secs = [r["seconds"] for r in runs if _timed(r)]
+    t = f"{np.median(secs):.1f} ({max(secs):.1f})" if secs else "-"
+    return (f"| {variant} | {mode} | {n} | {right} | {'**' + str(conf_wrong) + '**' if conf_wrong else 0} | {amb} | "
+            f"{contra} | {bad} | {pol_txt} | {t} |")
+
+
+def write_results(out: Path, rows: list[dict], meta: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / f"{RESULTS}.json", {"meta": meta, "runs": rows})
+    notes = "\n".join(f"- `{v.name}`: {v.note}" for v in app.VARIANTS.values())
+    run = (f"Method: CarmReg's code (Logic/, CarmRegModule/) as of commit {meta.get('commit') or '?'}; run "
+           f"`bench_appearance.py "
+           f"{meta.get('command', '')}`; {meta.get('machine', '')}, {meta.get('date', '')}.")
+    text = (f"# Appearance benchmark (issue 11, item 4)\n\n{meta['description']}\n\n{run}\n\nVariants:\n{notes}\n\n"
+            + summarize(rows, "report") + "\n" + summarize(rows, "tune"))
+    atomic_write_text(out / f"{RESULTS}.md", text)
+
+
+# ----------------------------------------------------------------------------------------------- main
+
+def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[str], done: set, work: Path
+                  ) -> list[dict]:
+    todo = [(v, m) for v in variants for m in modes if (case, v, m) not in done]
+    if not todo:
+        return []
+    scenes = maker.scenes(case, {app.VARIANTS[v].detector for v, _ in todo})
+    ct_path, lm_path, ct_labels = maker.files(case)
+    (_, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
+    jobs = []
+    for v in dict.fromkeys(v for v, _ in todo):
+        folder = work / f"case{case:03d}" / v
+        made = write_variant(scenes[app.VARIANTS[v].detector], app.VARIANTS[v], case, folder)
+        rng = np.random.default_rng(9500 + case)
+        for m in modes:
+            if (case, v, m) in done:
+                continue
+            clicks, given = clicks_file(m, made["truth"], ct_labels, folder, rng)
+            if m != "none" and clicks is None:
+                continue
+            jobs.append({"case": case, "ct_name": maker.ct_name(case), "variant": v, "mode": m,
+                         "xray": made["xray"], "ct": ct_path, "ct_lm": lm_path, "clicks": clicks,
+                         "out": folder / f"out_{m}", "detector": scenes[app.VARIANTS[v].detector].detector,
+                         "truth": made["truth"], "given": given, "centroids": centroids.as_dict()})
+    return jobs
+
+
+def rescore(rows: list[dict], work: Path) -> list[dict]:
+    """Score every run again from its stored result.json and truth.json (after a change of the scoring); the
+    measured seconds, exit code and messages are kept. Runs whose files are gone are kept as they were."""
+    sample = sample_case()
+    landmarks = {"chest": Path(sample["ct_landmarks"]), "abdomen": CENTROIDS_PATH}
+    from carmreg.logic.io.landmarks import read_landmarks_3d
+
+    centroids = {ct: read_landmarks_3d(p).sorted().as_dict() for ct, p in landmarks.items() if p.is_file()}
+    out = []
+    for r in rows:
+        folder = work / f"case{r['case']:03d}" / r["variant"]
+        result_path, xrays = folder / f"out_{r['mode']}" / "result.json", sorted(folder.glob("xray.*"))
+        if not (folder / "truth.json").is_file() or not xrays or r["ct"] not in centroids:
+            out.append(r)
+            continue
+        truth = json.loads((folder / "truth.json").read_text())
+        result = json.loads(result_path.read_text()) if result_path.is_file() and r.get("exit") in (0, 1) else None
+        new = {k: r[k] for k in ("case", "half", "ct", "variant", "mode", "seconds", "truth_labels", "given",
+                                 "stderr")}
+        new.update(score(r["mode"], r.get("exit"), result, truth, r["given"], centroids[r["ct"]]))
+        detector = app.DETECTORS[app.VARIANTS[r["variant"]].detector]
+        decided, source = polarity_read(result, xrays[0], detector) if result else (None, "no result")
+        truth_pol = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
+        new.update(polarity=decided, polarity_source=source, polarity_truth=truth_pol,
+                   polarity_right=None if decided is None else decided == truth_pol)
+        out.append(new)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", type=int, default=24)
+    parser.add_argument("--first", type=int, default=0)
+    parser.add_argument("--half", choices=("all", "tune", "report"), default="all",
+                        help="only the cases of this half (tune = even index, report = odd)")
+    parser.add_argument("--variants", default=",".join(app.VARIANTS))
+    parser.add_argument("--modes", default="unnamed,named,wrong")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
+    parser.add_argument("--jobs", type=int, default=1, help="registrations run at once (the machine is shared)")
+    parser.add_argument("--cache-dir", default="/tmp/carmreg-bench-cache")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/carmreg-appearance"), help="case files")
+    parser.add_argument("--timeout-s", type=float, default=900.0)
+    parser.add_argument("--summary-only", action="store_true", help="rewrite the tables from the JSON")
+    parser.add_argument("--rescore", action="store_true",
+                        help="with --summary-only: score the runs again from the result.json files under --work")
+    args = parser.parse_args(argv)
+    variants = [v for v in args.variants.split(",") if v]
+    modes = [m for m in args.modes.split(",") if m]
+    unknown = [v for v in variants if v not in app.VARIANTS] + [m for m in modes if m not in MODES]
+    if unknown:
+        print(f"bench_appearance: error: unknown variant or mode {', '.join(unknown)}; variants: "
+              f"{', '.join(app.VARIANTS)}; modes: {', '.join(MODES)}", file=sys.stderr)
+        return 2
+    path = args.out / f"{RESULTS}.json"
+    stored = json.loads(path.read_text()) if path.is_file() else {"runs": [], "meta": {}}
+    rows = stored["runs"]
+    meta = {"machine": f"{platform.processor() or platform.machine()}, 2 cores shared",
+            "date": time.strftime("%Y-%m-%d"), "commit": _commit(), "command": " ".join(sys.argv[1:])}
+    if args.summary_only:  # the run's own facts stay
+        meta.update({k: v for k, v in stored.get("meta", {}).items() if k in meta})
+    meta["description"] = _description()
+    if args.summary_only:
+        if args.rescore:
+            rows = rescore(rows, args.work)
+        write_results(args.out, rows, meta)
+        print(summarize(rows, "report"))
+        return 0
+    done = {(r["case"], r["variant"], r["mode"]) for r in rows}
+    maker = CaseMaker()
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        for case in range(args.first, args.first + args.cases):
+            if args.half != "all" and half(case) != args.half:
+                continue
+            jobs = jobs_for_case(maker, case, variants, modes, done, args.work)
+            for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
+                rows.append(row)
+                print(f"case {row['case']:3d} {row['ct'][:5]} {row['variant']:<27} {row['mode']:<7} "
+                      f"{str(row['status']):<12} {'right' if row['answer_right'] else 'WRONG'} "
+                      f"pol {row['polarity']} {row['seconds']:.1f}s {row['stderr'][:80]}", flush=True)
+                write_results(args.out, rows, meta)
+    print(summarize(rows, "report"))
+    return 0
+
+
+def _description() -> str:
+    return ("Each case: a pose and per-level motion drawn as bench_levels draws them, rendered on an image "
+            "intensifier (960 px, 0.25 mm, pincushion, circular field) and a flat panel (768 px, 0.388 mm, "
+            "rectangular collimation), every variant's appearance made by `Testing/Benchmarks/appearance.py` "
+            "(written independently of CarmReg's simulator), stored as a real file and registered by `carmreg "
+            "register` as a subprocess (database cached). 'answer right': unnamed = the labels CarmReg assigned are "
+            "the true ones; named / wrong = the names given are right (always / never), so every confident 'wrong' "
+            "run is a wrong name passed as confident; none = every visible level named right. 'polarity right': "
+            "from result.json's `appearance.polarity` when present, else '(assumed)' = what the reader assumed. "
+            "Even cases = tune half, odd = report half.")
+
+
+def _commit() -> str:
+    """The last commit that changed the method's code (Logic/, CarmRegModule/)."""
+    try:
+        root = Path(__file__).resolve().parents[2]
+        return subprocess.run(["git", "-C", str(root), "log", "-1", "--format=%h", "--", "Logic", "CarmRegModule"],
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+if __name__ == "__main__":
+    sys.exit(main())
