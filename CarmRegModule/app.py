@@ -20,22 +20,55 @@ WINDOW_STEPS = {"window": None, "window_data": 0, "window_ct": 1, "window_xray":
                 "window_check": 4}
 
 
-def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: bool = False) -> int:
+def check_display() -> None:
+    """Raise a CarmRegError (one line) unless a window can be shown: no display at all ($DISPLAY /
+    $WAYLAND_DISPLAY unset), or Qt unable to start on it (a missing xcb/OpenGL system library aborts the
+    process, so it is tried in a child process first)."""
+    import os
+    import subprocess
+    import sys
+
+    from .qt_common import headless
+
+    if os.environ.get("QT_QPA_PLATFORM", "").startswith("offscreen"):
+        raise CarmRegError("QT_QPA_PLATFORM=offscreen: the window would be invisible; unset it to open the "
+                           "window, or use carmreg screenshot --out DIR for pictures without a display")
+    if headless():
+        raise CarmRegError("no display ($DISPLAY is not set): carmreg gui needs a desktop session (over SSH: "
+                           "ssh -X; for tests: xvfb-run -a carmreg gui); carmreg screenshot --out DIR works "
+                           "without one")
+    code = "from qtpy import QtWidgets; QtWidgets.QApplication([])"
+    try:
+        probe = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise CarmRegError(f"Qt could not be started to test the display ({exc})") from None
+    if probe.returncode != 0:
+        lines = [ln.strip() for ln in probe.stderr.splitlines() if ln.strip()]
+        why = next((ln for ln in lines if "xcb" in ln or "plugin" in ln), lines[-1] if lines else "no message")
+        raise CarmRegError(f"Qt cannot open a window on this display ({why[:160]}); install the system "
+                           "libraries with scripts/install-system-deps.sh (Debian/Ubuntu, needs root)")
+
+
+def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: bool = False,
+            session=None) -> int:
     """Open the CarmReg window, optionally with data; returns the application's exit code.
 
     ct / xray: paths of a CT (DICOM folder, NIfTI, NRRD, MetaImage) and an X-ray (DICOM, PNG, TIFF);
-    ct_landmarks / xray_landmarks: .mrk.json (or plain JSON) centroids; sample: load the embedded sample case.
-    Errors in these inputs are shown as dialogs; the window stays open.
+    ct_landmarks / xray_landmarks: .mrk.json (or plain JSON) centroids; sample: load the embedded sample case;
+    session: a saved session file (data, points and the last result).
+    Errors in these inputs are shown as dialogs; the window stays open. Call ``check_display`` first.
     """
     from .main_window import CarmRegWidget
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    app = ensure_app()
+    app = ensure_app(offscreen=False)
     window = CarmRegWidget()
     window.show()
     process_events()
-    if not any((ct, xray, ct_landmarks, xray_landmarks, sample)):
+    if not any((ct, xray, ct_landmarks, xray_landmarks, sample, session)):
         window.offer_recovery()
+    if session:
+        _load_steps(window, [(f"session {session}", lambda: window.open_session(session))])
     _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample)
     return int(app.exec())
 
@@ -53,6 +86,12 @@ def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool) -
     if xray_landmarks:
         steps.append((f"X-ray landmarks {xray_landmarks}",
                       lambda: window.import_xray_landmarks(xray_landmarks, False)))
+    _load_steps(window, steps)
+    window.undo_stack.clear()
+
+
+def _load_steps(window, steps) -> None:
+    """Run (what, callable) loading steps; a failure is a dialog, the window stays."""
     for what, step in steps:
         try:
             step()
@@ -63,18 +102,20 @@ def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool) -
             details = traceback.format_exc()
             LOG.error("loading %s failed\n%s", what, details)
             window.dialogs.error("CarmReg - unexpected error", f"Loading {what} failed: {exc}", details)
-    window.undo_stack.clear()
 
 
 def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, register: bool = True,
-                       size=(1600, 1000), parameters: dict | None = None) -> list[Path]:
+                       size=(1600, 1000), parameters: dict | None = None, inputs: dict | None = None,
+                       session=None) -> list[Path]:
     """Headless PNG screenshots of the window and its views; returns the written paths.
 
     views: any of "window" (the state after loading/registering), "window_data", "window_ct", "window_xray",
     "window_register", "window_check" (the whole window at that workflow step), "axial", "coronal",
     "sagittal", "ct" (the four CT views), "xray", "overlay", "3d", "result" (overlay + 3D with the C-arm).
-    sample: load the embedded sample case first; register: run the registration when a view needs it;
-    parameters: RegistrationParameters fields to override (e.g. a smaller search range).
+    sample: load the embedded sample case first; inputs: {"ct", "xray", "ct_landmarks", "xray_landmarks": path}
+    to load instead; session: a session file to open instead; register: run the registration when a view needs
+    it (and the data allow it); parameters: RegistrationParameters fields to override (e.g. a smaller search
+    range).
     Files are named ``carmreg_<view>.png``. Raises CarmRegError on bad arguments or a failed load.
     """
     from .main_window import SCREENSHOT_VIEWS, CarmRegWidget
@@ -93,12 +134,21 @@ def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, regist
     window.show()
     process_events(50)
     try:
-        if sample:
+        if session:
+            window.open_session(session)
+        elif inputs:
+            _load_inputs(window, inputs.get("ct"), inputs.get("xray"), inputs.get("ct_landmarks"),
+                         inputs.get("xray_landmarks"), False)
+            failed = [m for m in dialogs.messages]
+            if failed:
+                raise InputFileError(failed[0][1])
+        elif sample:
             window.load_sample_case()
-            window.ct_store.select(None)
-            _focus_first_point(window)
+        window.ct_store.select(None)
+        _focus_first_point(window)
         wants_result = any(v in ("window", "window_register", "window_check", "overlay", "result") for v in views)
-        if sample and register and wants_result:
+        loaded = sample or inputs or session
+        if loaded and register and wants_result and window.registration_panel.run_button.isEnabled():
             window.run_registration(wait=True)
             errors = [m for m in dialogs.messages if "error" in m[0].lower() or "registration" in m[0].lower()]
             if errors:

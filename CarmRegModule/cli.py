@@ -97,16 +97,39 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--level", help="level the C-arm is centred near (default: random among labelled)")
     sim.add_argument("--size-px", type=int, default=None, help="detector columns = rows")
 
-    gui = sub.add_parser("gui", help="open the desktop application")
-    gui.add_argument("--ct")
-    gui.add_argument("--xray")
-    gui.add_argument("--ct-landmarks")
-    gui.add_argument("--xray-landmarks")
-    gui.add_argument("--sample", action="store_true", help="open with the embedded sample case")
+    gui = sub.add_parser("gui", help="open the desktop application",
+                         formatter_class=argparse.RawDescriptionHelpFormatter,
+                         description="Open the CarmReg window: empty (offers to recover a crashed session), with a\n"
+                         "saved session, with the sample case or with your files.\n\n"
+                         "Needs a display and, on a fresh Debian/Ubuntu machine, the system libraries of\n"
+                         "  scripts/install-system-deps.sh\n"
+                         "Without a display it exits with code 2 (carmreg screenshot works without one).")
+    _window_inputs(gui)
 
-    shot = sub.add_parser("screenshot", help="export screenshots of the application offscreen")
-    shot.add_argument("--out", required=True)
+    shot = sub.add_parser("screenshot", help="export screenshots of the application offscreen",
+                          description="PNG screenshots of the window and its views without a display: the "
+                          "sample case (default), a session or your files, registered first when a view shows "
+                          "the result.")
+    shot.add_argument("--out", required=True, help="output folder (carmreg_<view>.png)")
+    _window_inputs(shot)
+    shot.add_argument("--size", type=int, nargs=2, default=[1600, 1000], metavar=("WIDTH", "HEIGHT"),
+                      help="window size in px (default 1600 1000)")
+    shot.add_argument("--views", nargs="+", metavar="VIEW",
+                      help="window, window_data, window_ct, window_xray, window_register, window_check, axial, "
+                      "coronal, sagittal, ct, xray, overlay, 3d, result (default: the main ones)")
+    shot.add_argument("--no-register", action="store_true", help="do not register (views without a result)")
     return parser
+
+
+def _window_inputs(p: argparse.ArgumentParser) -> None:
+    """What the window opens with: a session, the sample case, or data files (any of them)."""
+    p.add_argument("--session", metavar="FILE", help="a saved session (*.carmreg.json): data, geometry, points "
+                   "and the last result")
+    p.add_argument("--sample", action="store_true", help="the embedded sample case")
+    p.add_argument("--ct", help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
+    p.add_argument("--xray", help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
+    p.add_argument("--ct-landmarks", metavar="FILE", help="CT centroids (.mrk.json or JSON), named by level")
+    p.add_argument("--xray-landmarks", metavar="FILE", help="X-ray clicks (.mrk.json or JSON), named or not")
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
@@ -206,7 +229,7 @@ def _print_report(result, seconds: float, out) -> None:
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
-          f"carm.tfm, slicer/CarmReg.mrml ({seconds:.1f} s in all)")
+          f"carm.tfm, slicer/CarmReg.mrml, report.pdf ({seconds:.1f} s in all)")
 
 
 def level_summary(check: dict) -> str:
@@ -356,17 +379,46 @@ def cmd_simulate(args) -> int:
     return simulate.run_cli(args)
 
 
-def cmd_gui(args) -> int:
-    from carmreg.app import run_gui
+def _check_window_inputs(args) -> None:
+    """Refuse, before any window opens, input files that do not exist or a session that cannot be read."""
+    for flag in ("ct", "xray", "ct_landmarks", "xray_landmarks"):
+        value = getattr(args, flag)
+        if value and not Path(value).exists():
+            raise CarmRegError(f"--{flag.replace('_', '-')} {value}: no such file or folder")
+    if args.session:
+        from carmreg.logic.io.session import load_session
 
-    return run_gui(ct=args.ct, xray=args.xray, ct_landmarks=args.ct_landmarks,
-                   xray_landmarks=args.xray_landmarks, sample=args.sample)
+        load_session(args.session)  # InputFileError naming the file and the problem
+        if args.sample or args.ct or args.xray:
+            raise CarmRegError("--session opens a saved session: give it alone, without --sample/--ct/--xray")
+
+
+def _gui_module():
+    """The widget layer, or a CarmRegError saying how to install it."""
+    try:
+        from carmreg import app
+    except ImportError as exc:
+        raise CarmRegError(f"the desktop application is not installed ({exc}): install it with "
+                           "pip install 'carmreg[gui]' (scripts/setup.sh does)") from None
+    return app
+
+
+def cmd_gui(args) -> int:
+    _check_window_inputs(args)
+    app = _gui_module()
+    app.check_display()  # no display, or Qt cannot open a window: one line, exit 2, nothing left behind
+    return app.run_gui(ct=args.ct, xray=args.xray, ct_landmarks=args.ct_landmarks,
+                       xray_landmarks=args.xray_landmarks, sample=args.sample, session=args.session)
 
 
 def cmd_screenshot(args) -> int:
-    from carmreg.app import export_screenshots
-
-    for path in export_screenshots(args.out, sample=True):
+    _check_window_inputs(args)
+    app = _gui_module()
+    inputs = {k: getattr(args, k) for k in ("ct", "xray", "ct_landmarks", "xray_landmarks") if getattr(args, k)}
+    sample = args.sample or not (inputs or args.session)
+    views = tuple(args.views) if args.views else app.DEFAULT_VIEWS
+    for path in app.export_screenshots(args.out, sample=sample, views=views, register=not args.no_register,
+                                       size=tuple(args.size), inputs=inputs, session=args.session):
         print(f"wrote {path}")
     return EXIT_OK
 

@@ -121,7 +121,9 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         result_page.setObjectName("result_page")
         result_page.addWidget(_framed(self.overlay_view))
         result_page.addWidget(_framed(self.view3d_result))
-        result_page.setSizes([800, 560])
+        result_page.setStretchFactor(0, 3)  # the overlay gets most of the room, the 3D view keeps a fair share
+        result_page.setStretchFactor(1, 2)
+        result_page.setSizes([600, 400])
         self.ct_page, self.result_page = ct_page, result_page
         self.view_tabs = QtWidgets.QTabWidget()
         self.view_tabs.setDocumentMode(True)
@@ -226,18 +228,41 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         return box
 
     def _xray_display_box(self) -> QtWidgets.QGroupBox:
+        """Contrast of the X-ray: window and level (also right-drag in the view), auto, invert, fit."""
         box = QtWidgets.QGroupBox("X-ray display")
-        row = QtWidgets.QHBoxLayout(box)
+        grid = QtWidgets.QGridLayout(box)
+        self.xray_window_spin, self.xray_level_spin = QtWidgets.QDoubleSpinBox(), QtWidgets.QDoubleSpinBox()
+        for spin, name in ((self.xray_window_spin, "Window"), (self.xray_level_spin, "Level")):
+            spin.setRange(-1e7, 1e7)
+            spin.setDecimals(0)
+            spin.setKeyboardTracking(False)
+            spin.setToolTip(f"{name} of the X-ray display (pixel values); right-drag in the view changes both")
+            spin.valueChanged.connect(self._xray_window_edited)
+        self.xray_view.window_changed.connect(self._xray_window_shown)
         auto = QtWidgets.QPushButton("Auto contrast")
+        auto.setToolTip("Window the exposed field's 1st-99.5th percentiles")
         auto.clicked.connect(self.xray_view.auto_window)
         self.invert_check = QtWidgets.QCheckBox("Invert")
         self.invert_check.toggled.connect(self.xray_view.set_invert)
         fit = QtWidgets.QPushButton("Fit")
         fit.clicked.connect(self.xray_view.fit)
-        for w in (auto, self.invert_check, fit):
-            row.addWidget(w)
-        row.addStretch(1)
+        grid.addWidget(QtWidgets.QLabel("Window"), 0, 0)
+        grid.addWidget(self.xray_window_spin, 0, 1)
+        grid.addWidget(QtWidgets.QLabel("Level"), 0, 2)
+        grid.addWidget(self.xray_level_spin, 0, 3)
+        grid.addWidget(auto, 1, 0, 1, 2)
+        grid.addWidget(self.invert_check, 1, 2)
+        grid.addWidget(fit, 1, 3)
         return box
+
+    def _xray_window_shown(self, window: float, level: float) -> None:
+        for spin, value in ((self.xray_window_spin, window), (self.xray_level_spin, level)):
+            spin.blockSignals(True)
+            spin.setValue(value)
+            spin.blockSignals(False)
+
+    def _xray_window_edited(self, _value: float) -> None:
+        self.xray_view.set_window_level(self.xray_window_spin.value(), self.xray_level_spin.value())
 
     def _connect(self) -> None:
         for store in (self.ct_store, self.xray_store):
@@ -266,6 +291,7 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
         self.registration_panel.reset_requested.connect(self.reset_registration)
         self.result_panel.export_requested.connect(self._action_export_result)
         self.result_panel.overlay_png_requested.connect(self._action_overlay_png)
+        self.result_panel.report_requested.connect(self._action_report_pdf)
         self.result_panel.accept_names_requested.connect(self._action_accept_names)
         self.xray_store.naming_changed.connect(self.act_name_levels.setChecked)
         self.step_tabs.currentChanged.connect(self._step_changed)
@@ -427,11 +453,25 @@ class CarmRegWidget(WindowActions, WindowRegistration, WindowSession, QtWidgets.
 
     def _landmarks_changed(self) -> None:
         self._points3d_timer.start()
+        self._check_spine_order()
         self._inputs_changed(reset_overlay=False)
         if self.result is not None:
             self.overlay_view.clicks = self.shown_clicks()
             self.overlay_view.refresh_markers()
         self._update_accept_names()
+
+    def _check_spine_order(self) -> None:
+        """Warn (not refuse) when the named points break the spine's order or spacing
+        (``io.landmarks.spine_order_warnings``): an "L2" placed above L1, a point in the wrong organ."""
+        from carmreg.logic.io.landmarks import spine_order_warnings
+
+        ct = self.ct_store.to_landmarks()
+        ct_notes = spine_order_warnings(ct) if len(ct.labels) >= 2 else []
+        xray = self.xray_store.to_landmarks()
+        named = [lb for lb in xray.labels if lb]
+        both = spine_order_warnings(ct, xray) if len(named) >= 2 and len(ct.labels) >= 2 else ct_notes
+        self.ct_panel.set_warnings(ct_notes)
+        self.xray_panel.set_warnings([w for w in both if w not in ct_notes])
 
     def _ct_selected(self, point_id) -> None:
         point = self.ct_store.get(point_id) if point_id is not None else None

@@ -297,9 +297,13 @@ class _AddPoint(QtGui.QUndoCommand):
 
     def redo(self):
         self.store._insert(self.point)
+        if self.point.label and self.store.pending_level == self.point.label:
+            self.store.set_pending_level(self.store.next_free_level(self.point.label))
 
     def undo(self):
         self.store._delete(self.point.id)
+        if self.point.label:  # the picker goes back to the level undone: the next click places it again
+            self.store.set_pending_level(self.point.label)
 
 
 class _RemovePoint(QtGui.QUndoCommand):

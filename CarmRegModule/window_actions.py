@@ -240,6 +240,12 @@ class WindowActions:
             self.export_result(path)
 
     @report_errors
+    def _action_report_pdf(self, *_):
+        path = self.dialogs.save_file("Save the one-page report", "PDF (*.pdf)", "carmreg_report.pdf")
+        if path:
+            self.export_report(path)
+
+    @report_errors
     def _action_overlay_png(self, *_):
         path = self.dialogs.save_file("Save overlay view", "PNG image (*.png)", "overlay_view.png")
         if path:

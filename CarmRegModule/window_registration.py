@@ -88,16 +88,22 @@ class WindowRegistration:
         return api.RegistrationParameters(**values)
 
     def run_registration(self, wait: bool = False) -> None:
-        """Run every stage on a worker thread; ``wait`` blocks until done (scripts, tests)."""
+        """Run every stage on a worker thread; ``wait`` blocks until done (scripts, tests). After a cancel the
+        stages already finished are kept (same inputs): it continues with the next one."""
         api = _registration_api()
-        inputs, params = self.registration_inputs(), self.registration_parameters()
+        partial = self._reg_state if self._reg_state is not None and self.registration_panel.next_stage() else None
+        inputs = None if partial is not None else self.registration_inputs()
+        params = None if partial is not None else self.registration_parameters()
+        todo = [s for s in api.STAGES if partial is None or s not in self.registration_panel.mpde_by_stage()]
 
         def job(logic, stage_done):
-            state = logic.prepare(*inputs, params)
-            for name in api.STAGES:
+            state = partial if partial is not None else logic.prepare(*inputs, params)
+            self._running_state = state  # kept by a cancel (the finished stages are in it)
+            for name in todo:
                 stage_done(logic.run_stage(state, name))
             return state, logic.result(state)
-        self.registration_panel.reset()
+        if partial is None:
+            self.registration_panel.reset()
         self._start_worker(api.CarmRegLogic(), job, wait)
 
     def run_next_stage(self, wait: bool = False) -> None:
@@ -112,6 +118,7 @@ class WindowRegistration:
 
         def job(logic, stage_done):
             st = state if state is not None else logic.prepare(*inputs, params)
+            self._running_state = st
             stage_done(logic.run_stage(st, name))
             last = name == api.STAGES[-1]
             return st, (logic.result(st) if last else None)
@@ -133,6 +140,7 @@ class WindowRegistration:
     def _start_worker(self, logic, job, wait: bool) -> None:
         if self.is_running():
             raise RegistrationError("a registration is already running; wait for it or cancel it")
+        self._running_state = None
         worker = RegistrationWorker(logic, job, self)
         worker.inputs_version = self.inputs_version
         worker.progress.connect(self.registration_panel.set_progress)
@@ -173,10 +181,17 @@ class WindowRegistration:
     def _worker_failed(self, exc, details: str) -> None:
         self.registration_panel.set_running(False)
         if isinstance(exc, CancelledError):
-            self.registration_panel.set_cancelled(str(exc))
-            self._reg_state = None
-            self.registration_panel.reset()
-            self.statusBar().showMessage("Registration cancelled", 6000)
+            current = getattr(self._worker, "inputs_version", None) == self.inputs_version
+            state = getattr(self, "_running_state", None)
+            if current and state is not None and state.stages:  # keep what was finished
+                self._reg_state = state
+                self._drop_unfinished_rows(state)
+                self.registration_panel.set_cancelled("Cancelled")
+            else:
+                self._reg_state = None
+                self.registration_panel.reset()
+                self.registration_panel.set_cancelled("Cancelled")
+            self.statusBar().showMessage("Registration cancelled; finished stages kept", 6000)
             return
         self.registration_panel.set_cancelled("failed")
         if isinstance(exc, CarmRegError):
@@ -185,6 +200,16 @@ class WindowRegistration:
             LOG.error("registration failed\n%s", details)
             self.dialogs.error("CarmReg - unexpected error",
                                f"The registration failed unexpectedly: {exc.__class__.__name__}: {exc}", details)
+
+    def _drop_unfinished_rows(self, state) -> None:
+        """The panel lists exactly the stages the kept state holds (a stage_done signal may still be queued)."""
+        panel = self.registration_panel
+        kept = {s.name: s for s in state.stages}
+        panel.reset()
+        for name in panel.stages:
+            if name in kept:
+                panel.stage_done(kept[name])
+        panel.set_running(False)
 
     def _worker_finished(self) -> None:
         worker, self._worker = self._worker, None
@@ -197,20 +222,29 @@ class WindowRegistration:
 
     def set_result(self, result) -> None:
         """Show a RegistrationResult: overlay, per-level PDE, level identification, stage figures, C-arm in 3D."""
+        from carmreg.logic.report.page import answer_banner, drawn_mpde_mm
+
         self.result, self.result_stale = result, False
         clicks = self.shown_clicks()
-        fine = next((s for s in result.stages if s.name == "fine"), None)
-        summary = (f"mPDE {fine.mpde_mm:.2f} mm   " if fine and fine.mpde_mm is not None else "") + \
-                  f"magnification {result.magnification:.2f}" + ("" if result.ok else "   CHECK FAILED")
-        bone_dark = result.appearance.bone_dark if result.appearance is not None else self.xray.bone_dark
+        drawn = drawn_mpde_mm(result.levels)  # the accuracy of the pose drawn (the final one), not of a stage
+        summary = (f"mPDE {drawn:.2f} mm   " if drawn is not None else "") + \
+            f"magnification {result.magnification:.2f}"
+        check = getattr(result, "level_check", None)
+        banner = answer_banner(check, bool(result.ok), list(result.warnings))
+        appearance = getattr(result, "appearance", None)
+        bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
-                                     result.levels, clicks, summary)
+                                     result.levels, clicks, summary, banner,
+                                     contradicted=(check or {}).get("status") == "contradicted")
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)
         self.result_panel.set_result(result, [self.xray_store.display_name(pid) for pid in ids])
         self._update_accept_names()
         self.registration_panel.set_result(result)
         g = result.geometry
+        sizes = self.result_page.sizes()
+        if sum(sizes) > 0:  # overlay 60 %, 3D 40 %: neither is squeezed after registering
+            self.result_page.setSizes([int(0.6 * sum(sizes)), sum(sizes) - int(0.6 * sum(sizes))])
         self.view3d_result.set_points([(p.label, p.position) for p in self.ct_store.points() if p.label])
         self.view3d_result.set_carm(g.source_lps_mm(result.pose), g.detector_corners_lps_mm(result.pose))
         self.last_result_summary = session_io.summarize_result(result)
@@ -236,10 +270,14 @@ class WindowRegistration:
         return ids
 
     def _show_assigned(self, result, click_ids: list[int]) -> None:
-        """Map ``level_check["assigned_labels"]`` onto the clicks and show it in the X-ray view and panel."""
+        """Map ``level_check["assigned_labels"]`` onto the clicks and show it in the X-ray view and panel.
+        When the image contradicts the given names, the names it supports (``supported_labels``) are shown and
+        offered instead: ``T10 → T11`` in red."""
         check = (getattr(result, "level_check", None) or {}) if result is not None else {}
         labels = list(check.get("assigned_labels") or [])
         matched = len(labels) == len(click_ids)
+        if check.get("status") == "contradicted":
+            labels = supported_labels(check)
         self.assigned_names = {pid: lb for pid, lb in zip(click_ids, labels, strict=True) if lb} if matched else {}
         if labels and not matched:
             LOG.warning("level check assigned %d names to %d clicks: not shown", len(labels), len(click_ids))
@@ -270,11 +308,18 @@ class WindowRegistration:
         elif not self.names_to_accept():
             reason = "The clicks already carry the assigned names"
         self.act_accept_names.setEnabled(not reason)
-        self.result_panel.set_accept_enabled(not reason, reason)
+        contradicted = self.result is not None and (self.result.level_check or {}).get("status") == "contradicted"
+        text = None
+        if contradicted and not reason:
+            text = "Use the names the image supports: " + ", ".join(
+                sorted(set(self.names_to_accept().values()), key=_level_key))
+            reason = "Rename the X-ray clicks to the names the image supports and register again (Ctrl+Z undoes)"
+        self.result_panel.set_accept_enabled(self.act_accept_names.isEnabled(), reason, text)
 
-    def accept_assigned_names(self, ask: bool = True) -> dict[int, str]:
+    def accept_assigned_names(self, ask: bool = True, register: bool = True) -> dict[int, str]:
         """Name the X-ray clicks as the level identification assigned them (one undo step); returns the
-        renamed {point id: level}. Unless confident, asks first when ``ask``."""
+        renamed {point id: level}. Unless confident, asks first when ``ask``. When the image contradicted the
+        given names: ``use_supported_names`` (no question: the button says what it does)."""
         if self.result is not None and self.result_stale:
             raise RegistrationError("the X-ray clicks changed since this result: register again before accepting "
                                     "its level names")
@@ -285,6 +330,8 @@ class WindowRegistration:
             return {}
         check = self.result.level_check or {}
         status = check.get("status")
+        if status == "contradicted":
+            return self.use_supported_names(register)
         if ask and status != "confident":
             names = ", ".join(self.assigned_names.values())
             choice = self.dialogs.question(
@@ -304,17 +351,76 @@ class WindowRegistration:
                                      8000)
         return changes
 
+    def use_supported_names(self, register: bool = True) -> dict[int, str]:
+        """One step for contradicted names: rename the clicks to the labelling the image supports (one undo
+        step), which makes this result stale, then register again (``register``) so the overlay, the pose and
+        the report follow the new names. Returns the renamed {point id: level}."""
+        changes = self.names_to_accept()
+        if not changes:
+            return {}
+        self.xray_store.rename_many(changes, "Use the names the image supports")
+        LOG.info("renamed the clicks to the names the image supports: %s", changes)
+        self.statusBar().showMessage(f"X-ray clicks renamed {', '.join(changes.values())} (the names the image "
+                                     "supports); registering again. Ctrl+Z undoes", 10000)
+        if register:
+            self.run_registration()
+        return changes
+
     def export_result(self, out_dir: str | Path) -> dict:
         """Write result.json, overlay.png, DRR, .tfm, figures and the 3D Slicer scene (slicer/CarmReg.mrml)
-        through the logic; returns {name: path}."""
+        through the logic, then the report page and the overlay as the view shows it (``overlay_view.png``);
+        returns {name: path}."""
         if self.result is None:
             raise RegistrationError("there is no result to export yet: run the registration (step 4)")
+        if getattr(self.result, "restored", False):
+            raise RegistrationError("this result was reopened from a session without its DRR: register again "
+                                    "(step 4) to export it")
         clicks = self.shown_clicks()
-        paths = _registration_api().CarmRegLogic().save_result(
+        paths = dict(_registration_api().CarmRegLogic().save_result(
             self.result, out_dir, xray_pixels=self.xray.pixels, clicked=clicks,
-            ct=self.ct_volume, ct_landmarks=self.ct_store.to_landmarks())
+            ct=self.ct_volume, ct_landmarks=self.ct_store.to_landmarks()) or {})
+        paths["report"] = self.export_report(Path(out_dir) / "report.pdf")  # the page as on screen
+        paths["overlay_view"] = self.save_screenshot(Path(out_dir) / "overlay_view.png", "overlay")
         if self.last_result_summary is not None:
             self.last_result_summary["out_dir"] = str(out_dir)
         self.statusBar().showMessage(f"Result written to {out_dir}", 8000)
-        return dict(paths or {})
+        return paths
 
+    def export_report(self, path: str | Path) -> Path:
+        """The one-page PDF report (``report.page``) with the overlay exactly as the view composites it now
+        (mode, blend) and the clicks as shown."""
+        from carmreg.logic.report.page import write_report_pdf
+
+        if self.result is None:
+            raise RegistrationError("there is no result to report yet: run the registration (step 4)")
+        if getattr(self.result, "restored", False):
+            raise RegistrationError("this result was reopened from a session without its DRR: register again "
+                                    "(step 4) to write its report")
+        path = write_report_pdf(path, self.result, self.xray.pixels, self.shown_clicks(),
+                                composite_rgb=self.overlay_view.composite_rgb())
+        self.statusBar().showMessage(f"Report written to {path}", 8000)
+        return path
+
+
+
+def _level_key(label: str) -> int:
+    from carmreg.logic.io.landmarks import level_index
+
+    return level_index(label)
+
+
+def supported_labels(check: dict) -> list[str]:
+    """Per identified click (``assigned_labels`` order), the name the image supports: the winner labelling
+    mapped onto the given one position by position along the spine (every labelling names the clicks in
+    spine order; the given one is the hypothesis with the assigned names). The assigned names when there is
+    no winner."""
+    assigned = list(check.get("assigned_labels") or [])
+    winner = list(check.get("winner_labels") or [])
+    given = next((list(h["labels"]) for h in check.get("hypotheses") or []
+                  if sorted(h.get("labels") or []) == sorted(a for a in assigned if a)), None)
+    if given is None:
+        given = sorted((a for a in assigned if a), key=_level_key)
+    if len(winner) != len(given):
+        return assigned
+    mapping = dict(zip(given, winner, strict=True))
+    return [mapping.get(a, a) for a in assigned]

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from qtpy import QtGui
 
 from carmreg.logic.errors import CarmRegError
@@ -24,7 +26,10 @@ class WindowSession:
             ct_path=self.ct_path, xray_path=self.xray_path,
             geometry_overrides={k: v for k, v in self.geometry_overrides.items()},
             ct_points=self.ct_store.to_records(), xray_points=self.xray_store.to_records(),
-            parameters=self.registration_panel.parameters(), last_result=self.last_result_summary)
+            parameters=self.registration_panel.parameters(),
+            last_result=None if self.last_result_summary is None else {**self.last_result_summary,
+                                                                       "stale": bool(self.result_stale)},
+            session_file=self.session_path)
 
     def save_session(self, path: str | Path) -> Path:
         path = Path(path)
@@ -62,14 +67,49 @@ class WindowSession:
                                     [p["uv_px"] for p in session.xray_points], undoable=False)
         metric = session.parameters.get("metric")
         if metric:
-            self.registration_panel.metric_combo.setCurrentText(metric)
+            self.registration_panel.set_metric(metric)
         self.last_result_summary = session.last_result
+        if session.last_result:
+            try:
+                self.show_saved_result(session.last_result)
+            except (CarmRegError, KeyError, TypeError, ValueError) as exc:
+                LOG.warning("the session's saved result cannot be shown: %s", exc)
         self.undo_stack.clear()
         self.session_path = path
         self._dirty = dirty
         self._update_title()
         if problems:
             self.dialogs.error("CarmReg - session", "The session opened, but:\n" + "\n".join(problems))
+
+    def show_saved_result(self, summary: dict) -> bool:
+        """Show a session's saved result (``session.summarize_result``) on the data just loaded: the overlay
+        with every level projected by the saved P (no DRR: registering again recomputes it), the level answer,
+        the pose and the numbers. Refused (False) when the X-ray or its geometry no longer give the saved P."""
+        from carmreg.logic.geometry.camera import POSE_NAMES, CarmGeometry, CarmPose
+
+        if self.xray is None or self.xray.intrinsics is None or summary.get("sod_mm") is None:
+            return False
+        pose = CarmPose.from_array([float(summary["pose"][n]) for n in POSE_NAMES])
+        geometry = CarmGeometry(self.xray.intrinsics, tuple(float(x) for x in summary["isocenter_lps_mm"]),
+                                float(summary["sod_mm"]))
+        P, saved = geometry.projection_matrix(pose), np.asarray(summary["projection_matrix"], float)
+        if P.shape != saved.shape or not np.allclose(P / np.abs(P).max(), saved / np.abs(saved).max(), atol=1e-9):
+            LOG.warning("the saved result's projection matrix does not match the X-ray geometry: not shown")
+            return False
+        stages = [SavedStage(st["name"], st.get("mpde_mm"), float(st.get("seconds") or 0.0))
+                  for st in summary.get("stages") or []]
+        levels = [{"in_image": True, "clicked_uv_px": None, "name_margin": None, **lv}
+                  for lv in summary.get("levels") or []]
+        result = SavedResult(pose, P, geometry, stages, levels, bool(summary.get("ok")),
+                             list(summary.get("warnings") or []), summary.get("level_check"))
+        self.set_result(result)
+        if summary.get("stale"):
+            self.result_stale = True
+            self.overlay_view.summary = "inputs changed since this result: register again"
+            self.clear_assigned_names()
+        self.statusBar().showMessage("The session's last result is shown (without the DRR): register again to "
+                                     "recompute it", 8000)
+        return True
 
     def new_session(self, ask: bool = True) -> bool:
         if ask and not self.maybe_save("Start a new session"):
@@ -151,8 +191,8 @@ class WindowSession:
         choice = self.dialogs.question("CarmReg - recover work", text, ("Recover", "Discard", "Later"))
         if choice == "Later":
             return False
-        if choice == "Recover":
-            self.restore_session(session, None, dirty=True)
+        if choice == "Recover":  # keeps the session file name it belonged to (saved as autosave's session_file)
+            self.restore_session(session, session.session_file, dirty=True)
             self.autosave_now()
         for path in found:
             path.unlink(missing_ok=True)
@@ -192,3 +232,33 @@ class WindowSession:
         self.undo_stack.clear()
         self.close()
 
+
+
+@dataclass
+class SavedStage:
+    name: str
+    mpde_mm: float | None
+    seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class SavedResult:
+    """A registration result read back from a session (``session.summarize_result``): what the window shows,
+    without the DRR and the figures; ``restored`` tells the export to ask for a new registration."""
+
+    pose: object
+    projection_matrix: np.ndarray
+    geometry: object
+    stages: list
+    levels: list
+    ok: bool
+    warnings: list
+    level_check: dict | None
+    drr_line_integral: None = None
+    convergence: list = field(default_factory=list)
+    restored: bool = True
+
+    @property
+    def magnification(self) -> float:
+        return float(self.geometry.magnification(self.pose))

@@ -87,7 +87,10 @@ class LandmarkPanel(QtWidgets.QWidget):
         self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
-        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        # the Level cells are combo boxes (cell widgets), which ResizeToContents ignores: a fixed width that
+        # fits the longest entry, so T10, T11, T12 never read "T1" after the table fills from empty
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Fixed)
+        self.table.setColumnWidth(0, level_column_width())
         header.setSectionResizeMode(1, QtWidgets.QHeaderView.ResizeMode.Stretch)
         for column in range(2, len(headers)):
             header.setSectionResizeMode(column, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
@@ -97,6 +100,12 @@ class LandmarkPanel(QtWidgets.QWidget):
         self.count_label = QtWidgets.QLabel()
         self.count_label.setObjectName("hint")
         layout.addWidget(self.count_label)
+        self.warning_label = QtWidgets.QLabel()
+        self.warning_label.setObjectName("warning")
+        self.warning_label.setWordWrap(True)
+        self.warning_label.setStyleSheet("color: #ffa94d; font-weight: bold;")
+        self.warning_label.setVisible(False)
+        layout.addWidget(self.warning_label)
 
         buttons = QtWidgets.QGridLayout()
         self.delete_button = QtWidgets.QPushButton("Delete selected")
@@ -161,6 +170,11 @@ class LandmarkPanel(QtWidgets.QWidget):
             text += (" + " if names else ": ") + f"{unnamed} unnamed"
         self.count_label.setText(text)
 
+    def set_warnings(self, warnings: list[str]) -> None:
+        """Plausibility warnings on the points (spine order, spacing); [] hides the line."""
+        self.warning_label.setText("\n".join(f"\u26a0 {w}" for w in warnings))
+        self.warning_label.setVisible(bool(warnings))
+
     def set_assigned(self, assigned: dict[int, str]) -> None:
         """Show the level the registration assigned to each click ({point id: level}); {} clears."""
         self.assigned = dict(assigned)
@@ -221,3 +235,14 @@ class LandmarkPanel(QtWidgets.QWidget):
     def _clear(self) -> None:
         if len(self.store):
             self.store.replace_all([], [], text="Clear landmarks")
+
+
+def level_column_width() -> int:
+    """Width (px) of the Level column: a combo box holding every entry it can show (``?12``, the unnamed
+    entry, every level name), plus a margin."""
+    probe = QtWidgets.QComboBox()
+    probe.addItems(["?12", UNNAMED] + LEVEL_NAMES)
+    probe.setSizeAdjustPolicy(QtWidgets.QComboBox.SizeAdjustPolicy.AdjustToContents)
+    width = probe.sizeHint().width() + 6
+    probe.deleteLater()
+    return width

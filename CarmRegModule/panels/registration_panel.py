@@ -15,16 +15,48 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 from qtpy import QtCore, QtWidgets
 
 from ..qt_common import STATUS_COLORS
 
-STAGE_TITLES = {"database": "1a  DRR database", "spatial": "1b  Spatial search (Ty, Tz)",
-                "levels": "1c  Level identification", "depth": "2   Depth search (Tx)",
-                "fine": "3   Fine search (6 DOF)", "refine": "4   Image refinement (6 DOF)",
-                "final_drr": "    Final DRR"}
-STAGE_WEIGHTS = {"database": 0.35, "spatial": 0.1, "levels": 0.35, "depth": 0.01, "fine": 0.02, "refine": 0.12,
-                 "final_drr": 0.05}  # shares of the run time on the sample case (3 unnamed clicks, no cache)
+STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
+                "levels": "Identifying the levels", "depth": "Estimating the magnification",
+                "fine": "Fitting the clicked centres", "refine": "Refining on the image",
+                "final_drr": "Rendering the final DRR"}
+STAGES_ORDER = tuple(STAGE_TITLES)
+METRIC_NAMES = {"gc": "Gradient correlation (GC)", "go": "Gradient orientation (GO)",
+                "ncc": "Normalised cross-correlation (NCC)", "gi": "Gradient information (GI)",
+                "mi": "Mutual information (MI)", "psnr": "Peak signal-to-noise ratio (PSNR)",
+                "ssim": "Structural similarity (SSIM)"}
+STAGE_NUMBERS = {"database": "1a", "spatial": "1b", "levels": "1c", "depth": "2", "fine": "3", "refine": "4",
+                 "final_drr": ""}  # the method paper's stage numbers, kept in the table for the engineer
+# Typical seconds per stage on this project's 2-core CPU (sample case, unnamed clicks, database cached; the
+# database takes ~6 s when it has to be built): the time-left estimate scales them by how fast the finished
+# stages ran on this machine.
+STAGE_SECONDS = {"database": 1.0, "spatial": 0.7, "levels": 6.0, "depth": 0.05, "fine": 0.1, "refine": 1.5,
+                 "final_drr": 0.4}
+
+
+def time_left_s(stages: tuple[str, ...], done: dict[str, float], current: str | None, fraction: float,
+                elapsed_in_current_s: float) -> float:
+    """Seconds left, estimated: the typical seconds (``STAGE_SECONDS``) of the stages not done, the current one
+    by its unfinished part, all scaled by actual/typical of the stages finished here (not the database, whose
+    time depends on the cache; 1 before any finished). ``done`` = {stage: seconds it took}."""
+    timed = {k: v for k, v in done.items() if k != "database"}
+    typical = sum(STAGE_SECONDS.get(k, 1.0) for k in timed)
+    scale = float(np.clip(sum(timed.values()) / typical, 0.25, 8.0)) if typical > 0 else 1.0
+    left = sum(STAGE_SECONDS.get(k, 1.0) for k in stages if k not in done and k != current) * scale
+    if current is not None:
+        expected = STAGE_SECONDS.get(current, 1.0) * scale
+        if 0.05 < fraction < 1.0 and elapsed_in_current_s > 0.5:
+            expected = elapsed_in_current_s / fraction  # the stage's own pace once it has one
+        left += max(expected - elapsed_in_current_s, 0.0)
+    return left
+
+
+def format_seconds(seconds: float) -> str:
+    return f"about {seconds:.0f} s left" if seconds < 90 else f"about {seconds / 60:.0f} min left"
 
 
 class ConvergencePlot(QtWidgets.QWidget):
@@ -102,11 +134,12 @@ class RegistrationPanel(QtWidgets.QWidget):
 
         form = QtWidgets.QFormLayout()
         self.metric_combo = QtWidgets.QComboBox()
-        self.metric_combo.addItems(list(metrics) or ["gc"])
-        self.metric_combo.setToolTip("Image similarity for the spatial search (stage 1b): gc gradient "
-                                     "correlation, go gradient orientation, ncc, gi, mi, psnr, ssim")
-        form.addRow("Similarity metric", self.metric_combo)
-        self.metric_combo.currentTextChanged.connect(lambda _m: self._done and self.reset_requested.emit())
+        for key in list(metrics) or ["gc"]:
+            self.metric_combo.addItem(METRIC_NAMES.get(key, key), key)
+        self.metric_combo.setToolTip("Image similarity for finding the spine in the image (stage 1b); gradient "
+                                     "correlation is the most reliable on C-arm images (README)")
+        form.addRow("Similarity", self.metric_combo)
+        self.metric_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
         self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
         self.cache_check.setChecked(True)
         form.addRow("", self.cache_check)
@@ -160,7 +193,14 @@ class RegistrationPanel(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
-        return {"metric": self.metric_combo.currentText(), "use_cache": self.cache_check.isChecked()}
+        return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
+                "use_cache": self.cache_check.isChecked()}
+
+    def set_metric(self, key: str) -> None:
+        """Choose the metric by its key (``gc``, ``ncc``, ...)."""
+        index = self.metric_combo.findData(key)
+        if index >= 0:
+            self.metric_combo.setCurrentIndex(index)
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""
@@ -173,8 +213,10 @@ class RegistrationPanel(QtWidgets.QWidget):
 
     def reset(self) -> None:
         self._done = {}
+        self._stage_started: dict[str, float] = {}
         for row, name in enumerate(self.stages):
-            self.table.setItem(row, 0, QtWidgets.QTableWidgetItem(STAGE_TITLES.get(name, name)))
+            title = f"{STAGE_NUMBERS.get(name, ''):<3} {STAGE_TITLES.get(name, name)}"
+            self.table.setItem(row, 0, QtWidgets.QTableWidgetItem(title))
             self.table.setItem(row, 1, QtWidgets.QTableWidgetItem("-"))
             self.table.setItem(row, 2, QtWidgets.QTableWidgetItem("-"))
         self.progress.setValue(0)
@@ -191,6 +233,7 @@ class RegistrationPanel(QtWidgets.QWidget):
     def set_running(self, running: bool) -> None:
         if running:
             self._started = time.perf_counter()
+            self._stage_started = {}
             self.status_label.setText("")
         self._update_buttons(running)
 
@@ -199,18 +242,31 @@ class RegistrationPanel(QtWidgets.QWidget):
         nxt = self.next_stage()
         self.run_button.setEnabled(ready and not running)
         self.next_button.setEnabled(ready and not running and nxt is not None)
-        self.next_button.setText(f"Run next: {nxt}" if nxt else "All stages done")
+        self.next_button.setText(f"Next: {STAGE_TITLES.get(nxt, nxt).lower()}" if nxt else "All stages done")
+        self.next_button.setToolTip(f"Run only the next stage ({nxt})" if nxt else "")
+        partial = bool(self._done) and nxt is not None
+        self.run_button.setText("Register (continue)" if partial else "Register (all stages)")
+        self.run_button.setToolTip("Run the stages not done yet; 'Start over' forgets the finished ones"
+                                   if partial else "Run every stage")
         self.cancel_button.setEnabled(running)
         self.metric_combo.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 
     def set_progress(self, stage: str, fraction: float, message: str) -> None:
-        done = sum(STAGE_WEIGHTS.get(s, 0.0) for s in self._done if s != stage)
-        total = done + STAGE_WEIGHTS.get(stage, 0.0) * max(0.0, min(1.0, fraction))
-        self.progress.setValue(int(1000 * min(total, 1.0)))
-        self.progress.setFormat(f"{STAGE_TITLES.get(stage, stage).strip()}  {100 * fraction:.0f} %")
-        elapsed = time.perf_counter() - self._started if self._started else 0.0
-        self.stage_label.setText(f"{message}   ({elapsed:.1f} s)")
+        """The logic's progress(stage, fraction, message): the bar = time spent / (time spent + time left),
+        its text the stage in plain words and its own progress ("labelling 3 of 7"), the time left below."""
+        now = time.perf_counter()
+        started = self._stage_started.setdefault(stage, now)
+        elapsed = now - self._started if self._started else 0.0
+        fraction = max(0.0, min(1.0, fraction))
+        done = {k: v.seconds for k, v in self._done.items() if k != stage}
+        left = time_left_s(self.stages, done, stage if fraction < 1.0 else None, fraction, now - started)
+        spent = sum(done.values()) + (now - started)
+        self.progress.setValue(int(1000 * min(spent / max(spent + left, 1e-6), 1.0)))
+        detail = message if message and not message.startswith(stage) else f"{100 * fraction:.0f} %"
+        self.progress.setFormat(f"{STAGE_TITLES.get(stage, stage)}: {detail}")
+        self.stage_label.setText(f"{format_seconds(left)}   ({elapsed:.1f} s so far)")
+        self.time_left_s = left
 
     def stage_done(self, stage) -> None:
         """Show one StageResult (name, mpde_mm, seconds, extra)."""
@@ -226,7 +282,13 @@ class RegistrationPanel(QtWidgets.QWidget):
         self._update_buttons(running=True)
 
     def set_cancelled(self, message: str) -> None:
-        self.progress.setFormat("cancelled")
+        """Stopped (cancel or failure): the finished stages stay in the table and are kept for the next run."""
+        kept = [STAGE_TITLES.get(k, k).lower() for k in self.stages if k in self._done]
+        self.progress.setFormat("cancelled" if message != "failed" else "failed")
+        nxt = self.next_stage()
+        if kept and nxt is not None:
+            message += (f"; kept {len(kept)} finished stage(s) - Register continues with "
+                        f"{STAGE_TITLES.get(nxt, nxt).lower()}")
         self.stage_label.setText(message)
         self.set_running(False)
 
@@ -234,11 +296,14 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.plot.set_convergence(result.convergence or [])
         self.progress.setValue(1000)
         self.progress.setFormat("done")
+        self.stage_label.setText(f"finished in {sum(s.seconds for s in result.stages):.1f} s (stage time)")
+        from carmreg.logic.report.page import drawn_mpde_mm
+
         total = sum(s.seconds for s in result.stages)
-        fine = next((s for s in result.stages if s.name == "fine"), None)
+        drawn = drawn_mpde_mm(result.levels)
         head = ("<b style='color:#69db7c'>Registered</b>" if result.ok
                 else "<b style='color:#ff8787'>Registration check failed</b>")
-        text = head + (f" - fine mPDE {fine.mpde_mm:.2f} mm" if fine and fine.mpde_mm is not None else "")
+        text = head + (f" - mPDE {drawn:.2f} mm at the pose drawn" if drawn is not None else "")
         text += f", magnification {result.magnification:.2f}, {total:.1f} s in total."
         text += level_check_html(getattr(result, "level_check", None))
         if result.warnings:

@@ -14,8 +14,10 @@ into the clicks (one undo step; the window does it).
 
 from __future__ import annotations
 
+import html
+
 import numpy as np
-from qtpy import QtCore, QtWidgets
+from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.geometry.camera import POSE_NAMES
 
@@ -50,7 +52,8 @@ def format_margin(margin) -> str:
 
 def ranked_hypotheses(check: dict) -> list[dict]:
     """The labellings considered, best first: the winner, the runner-up, then the registered ones by score (the
-    refinement objective: lower is better), then those not registered (an implausible magnification)."""
+    refinement objective: lower is better), then those not registered (an implausible magnification). Each
+    labelling once (its best fit): without clicks several starts can end on the same level."""
     winner = list(check.get("winner_labels") or check.get("assigned_labels") or [])
     runner_up = list(check.get("runner_up_labels") or [])
 
@@ -59,7 +62,13 @@ def ranked_hypotheses(check: dict) -> list[dict]:
         score = h.get("score")
         rank = 0 if labels == winner else 1 if labels == runner_up else 2
         return rank, not h.get("refined", True), float("inf") if score is None else float(score)
-    return sorted(check.get("hypotheses") or [], key=key)
+    out, seen = [], set()
+    for h in sorted(check.get("hypotheses") or [], key=key):  # no clicks: several fits may land on one level
+        labels = tuple(h.get("labels") or [])
+        if labels not in seen:
+            seen.add(labels)
+            out.append(h)
+    return out
 
 
 def arrow_list(names: list[str], labels: list[str]) -> str:
@@ -72,6 +81,7 @@ class ResultPanel(QtWidgets.QWidget):
 
     export_requested = QtCore.Signal()
     overlay_png_requested = QtCore.Signal()
+    report_requested = QtCore.Signal()
     accept_names_requested = QtCore.Signal()
 
     def __init__(self, overlay_view, parent=None):
@@ -83,6 +93,12 @@ class ResultPanel(QtWidgets.QWidget):
         heading = QtWidgets.QLabel("Check the overlay")
         heading.setObjectName("heading")
         layout.addWidget(heading)
+        self.banner = QtWidgets.QLabel()
+        self.banner.setObjectName("level_banner")
+        self.banner.setWordWrap(True)
+        self.banner.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.banner.setVisible(False)
+        layout.addWidget(self.banner)
 
         box = QtWidgets.QGroupBox("Display")
         form = QtWidgets.QFormLayout(box)
@@ -132,14 +148,21 @@ class ResultPanel(QtWidgets.QWidget):
         self.pose_label.setWordWrap(True)
         layout.addWidget(self.pose_label)
         row = QtWidgets.QHBoxLayout()
-        self.export_button = QtWidgets.QPushButton("Export result folder...")
+        self.export_button = QtWidgets.QPushButton("Result folder...")
         self.export_button.setToolTip("result.json, overlay.png, DRR (PNG + NRRD), carm.tfm, convergence plot")
         self.export_button.clicked.connect(self.export_requested)
-        self.png_button = QtWidgets.QPushButton("Save overlay view PNG...")
+        self.png_button = QtWidgets.QPushButton("Overlay PNG...")
+        self.png_button.setToolTip("The overlay view as a PNG image")
         self.png_button.clicked.connect(self.overlay_png_requested)
+        self.report_button = QtWidgets.QPushButton("Report PDF...")
+        self.report_button.setToolTip("One page to keep: the overlay as shown, the level answer, named levels, "
+                                      "pose, magnification, inputs and versions")
+        self.report_button.clicked.connect(self.report_requested)
+        row.addWidget(self.report_button)
         row.addWidget(self.export_button)
         row.addWidget(self.png_button)
-        layout.addLayout(row)
+        layout.insertLayout(2, row)  # under the heading and the level banner: never below the fold
+        layout.insertWidget(2, self.accept_button)  # the one step on the level names, right under the banner
         self.set_result(None)
 
     def _level_box(self) -> QtWidgets.QGroupBox:
@@ -151,6 +174,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.level_status_label.setObjectName("level_status")
         self.level_message_label = QtWidgets.QLabel("")
         self.level_margin_label = QtWidgets.QLabel("-")
+        self.level_margin_label.setWordWrap(True)
         self.level_runner_up_label = QtWidgets.QLabel("-")
         self.level_assigned_label = QtWidgets.QLabel("-")
         for label in (self.level_mode_label, self.level_message_label, self.level_assigned_label,
@@ -166,7 +190,8 @@ class ResultPanel(QtWidgets.QWidget):
         form.addRow("Margin", self.level_margin_label)
         form.addRow("Runner-up", self.level_runner_up_label)
         self.hypotheses_table = QtWidgets.QTableWidget(0, 4)
-        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score", "Similarity", "mPDE (mm)"])
+        self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score\n(lower better)", "Similarity",
+                                                         "mPDE\n(mm)"])
         self.hypotheses_table.verticalHeader().setVisible(False)
         self.hypotheses_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.hypotheses_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.NoSelection)
@@ -175,7 +200,8 @@ class ResultPanel(QtWidgets.QWidget):
         for c in (1, 2, 3):
             header.setSectionResizeMode(c, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.hypotheses_table.setFixedHeight(
-            self.hypotheses_table.verticalHeader().defaultSectionSize() * (MAX_HYPOTHESES + 1) + 6)
+            self.hypotheses_table.verticalHeader().defaultSectionSize() * MAX_HYPOTHESES
+            + header.sizeHint().height() + 6)
         self.hypotheses_table.setToolTip("The labellings tried, best first (bold: the image's choice). Score: "
                                          "image dissimilarity + landmark misfit, lower is better")
         form.addRow(self.hypotheses_table)
@@ -183,8 +209,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.accept_button.setToolTip("Name the X-ray clicks as assigned by the level identification (Ctrl+Z "
                                       "undoes)")
         self.accept_button.clicked.connect(self.accept_names_requested)
-        form.addRow(self.accept_button)
-        return box
+        return box  # the accept button sits at the top of the step (see __init__), shown when it can act
 
     def set_level_check(self, check: dict | None, click_names: list[str] | None = None) -> None:
         """Show ``result.level_check`` ({} or None: no identification ran); ``click_names`` = the clicks as
@@ -210,7 +235,13 @@ class ResultPanel(QtWidgets.QWidget):
             self.level_assigned_label.setText(", ".join(labels))
         else:  # no clicks: the levels the found pose puts in the image
             self.level_assigned_label.setText(f"in the image: {', '.join(visible)}" if visible else "-")
-        self.level_margin_label.setText(format_margin(check.get("margin")) if check else "-")
+        margin = format_margin(check.get("margin")) if check else "-"
+        if check and margin.startswith(("+", "-")) and len(margin) > 1:
+            from carmreg.logic.registration.level_confidence import ConfidenceRule
+
+            t = ConfidenceRule().margin
+            margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
+        self.level_margin_label.setText(margin)
         runner_up = check.get("runner_up_labels")
         prefers = status == "contradicted" and mode in ("named", "partly_named")
         self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)
@@ -233,8 +264,15 @@ class ResultPanel(QtWidgets.QWidget):
                     item.setFont(font)
                 self.hypotheses_table.setItem(row, col, item)
 
-    def set_accept_enabled(self, enabled: bool, reason: str = "") -> None:
+    def set_accept_enabled(self, enabled: bool, reason: str = "", text: str | None = None) -> None:
+        """Enable "Accept assigned names"; ``text`` relabels it (contradicted names: "Use the names the image
+        supports: ...")."""
         self.accept_button.setEnabled(bool(enabled))
+        self.accept_button.setVisible(bool(enabled))
+        self.accept_button.setText(text or "Accept assigned names")
+        self.accept_button.setObjectName("danger" if text else "")
+        self.accept_button.setStyleSheet("QPushButton { background: #c92a2a; color: white; font-weight: bold; }"
+                                         if text and enabled else "")
         self.accept_button.setToolTip(reason or "Name the X-ray clicks as assigned by the level identification "
                                                 "(Ctrl+Z undoes)")
 
@@ -242,9 +280,33 @@ class ResultPanel(QtWidgets.QWidget):
         self.overlay.show_names = on
         self.overlay.refresh_markers()
 
+    def set_banner(self, banner: tuple[str, str, str] | None) -> None:
+        """The level answer (headline, reason, colour) as a coloured block at the top; None hides it."""
+        self.banner_colour = banner[2] if banner else None
+        if banner is None:
+            self.banner.setVisible(False)
+            return
+        headline, reason, colour = banner
+        ink = "black" if QtGui.QColor(colour).lightnessF() > 0.6 else "white"
+        self.banner.setStyleSheet(f"QLabel#level_banner {{ background: {colour}; color: {ink}; padding: 6px; "
+                                  "border-radius: 3px; }")
+        # the headline only: the reason is the message in "Level identification" below, in the same colour
+        self.banner.setText(f"<b style='font-size:12pt'>{html.escape(headline)}</b>")
+        self.banner.setToolTip(reason)
+        self.banner.setVisible(True)
+
     def set_result(self, result, click_names: list[str] | None = None) -> None:
         has = result is not None
-        self.export_button.setEnabled(has)
+        self.set_banner(None)
+        if has:
+            from carmreg.logic.report.page import answer_banner
+
+            self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok), result.warnings))
+        restored = has and getattr(result, "restored", False)
+        for button in (self.export_button, self.report_button):
+            button.setEnabled(has and not restored)
+            button.setToolTip(button.toolTip().split(" (reopened")[0] + (
+                " (reopened from a session: register again to export)" if restored else ""))
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))
         self.set_level_check(getattr(result, "level_check", None) if has else None, click_names)

@@ -56,8 +56,14 @@ class MarkerItem(QtWidgets.QGraphicsItem):
         self.setOpacity(spec.alpha)
         self.update()
 
+    show_text = True  # False when the view's decluttering hides this label (it would overprint another)
+
     def boundingRect(self) -> QtCore.QRectF:
         return QtCore.QRectF(-14, -14, 200, 30)
+
+    def label_rect(self) -> QtCore.QRectF:
+        """The label's box relative to the glyph centre, in screen px (an estimate from the text length)."""
+        return QtCore.QRectF(12, -8, 8.5 * len(self.spec.text) + 4, 17) if self.spec.text else QtCore.QRectF()
 
     def paint(self, painter: QtGui.QPainter, option, widget=None) -> None:
         spec = self.spec
@@ -73,7 +79,7 @@ class MarkerItem(QtWidgets.QGraphicsItem):
             painter.setPen(QtCore.Qt.PenStyle.NoPen)
             painter.setBrush(color)
             painter.drawEllipse(QtCore.QPointF(0, 0), 3.0, 3.0)
-        if spec.text:
+        if spec.text and self.show_text:
             self._label(painter, spec.text, color)
 
     @staticmethod
@@ -112,6 +118,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
     hover_text = QtCore.Signal(str)
     status_message = QtCore.Signal(str)
     point_activated = QtCore.Signal(object)  # position of a placed/selected point
+    window_changed = QtCore.Signal(float, float)  # window, level (image values)
 
     def __init__(self, store=None, parent=None):
         super().__init__(parent)
@@ -122,7 +129,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
         self.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.setVerticalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorUnderMouse)
+        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.NoAnchor)
         self.setResizeAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorViewCenter)
         self.setRenderHints(QtGui.QPainter.RenderHint.Antialiasing | QtGui.QPainter.RenderHint.SmoothPixmapTransform)
         self.setViewportUpdateMode(QtWidgets.QGraphicsView.ViewportUpdateMode.FullViewportUpdate)
@@ -177,6 +184,7 @@ class ImageCanvas(QtWidgets.QGraphicsView):
     def set_window_level(self, window: float, level: float) -> None:
         self.window, self.level = max(float(window), 1e-6), float(level)
         self._render()
+        self.window_changed.emit(self.window, self.level)
 
     def auto_window(self) -> None:
         if self._image is not None and not self._rgb:
@@ -221,12 +229,25 @@ class ImageCanvas(QtWidgets.QGraphicsView):
             self.fit()
 
     def zoom(self, factor: float, anchor: QtCore.QPoint | None = None) -> None:
+        """Scale by ``factor`` keeping the scene point under ``anchor`` (viewport px; default: the view's
+        centre) where it is on screen. Done explicitly, not with Qt's AnchorUnderMouse: that anchor uses the
+        last mouse position Qt saw, which is stale in a view that handles mouse moves itself."""
         self._auto_fit = False
-        old_anchor = self.transformationAnchor()
         if anchor is None:
-            self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.AnchorViewCenter)
+            anchor = self.viewport().rect().center()
+        before = self.mapToScene(anchor)
+        old_anchor = self.transformationAnchor()
+        self.setTransformationAnchor(QtWidgets.QGraphicsView.ViewportAnchor.NoAnchor)
         self.scale(factor, factor)
         self.setTransformationAnchor(old_anchor)
+        self.keep_scene_point_at(before, anchor)
+
+    def keep_scene_point_at(self, scene: QtCore.QPointF, anchor: QtCore.QPoint) -> None:
+        """Scroll so that ``scene`` is drawn at viewport position ``anchor``."""
+        after = self.mapFromScene(scene)
+        h, v = self.horizontalScrollBar(), self.verticalScrollBar()
+        h.setValue(h.value() + after.x() - anchor.x())
+        v.setValue(v.value() + after.y() - anchor.y())
 
     def zoom_level(self) -> float:
         return float(self.transform().m11())
@@ -268,6 +289,30 @@ class ImageCanvas(QtWidgets.QGraphicsView):
                 self._markers[key] = item
                 self.scene().addItem(item)
         self.viewport().update()
+
+    def declutter(self) -> list[object]:
+        """Hide the labels that would overprint a label already placed on screen, the most important first
+        (selected, then in-plane, then fitted/clicked order); returns the keys whose label is hidden. Their
+        glyphs stay, and hovering or zooming in shows the name again."""
+        placed: list[QtCore.QRectF] = []
+        hidden = []
+        order = sorted(self._markers.items(), key=lambda kv: (kv[1].spec.style != "selected", -kv[1].spec.alpha))
+        for key, item in order:
+            box = item.label_rect()
+            if box.isEmpty():
+                continue
+            centre = self.mapFromScene(QtCore.QPointF(item.spec.x, item.spec.y))
+            box = box.translated(centre.x(), centre.y())
+            item.show_text = not any(box.intersects(other) for other in placed)
+            if item.show_text:
+                placed.append(box)
+            else:
+                hidden.append(key)
+        return hidden
+
+    def paintEvent(self, event) -> None:
+        self.declutter()
+        super().paintEvent(event)
 
     def markers(self) -> dict[object, MarkerSpec]:
         return {k: item.spec for k, item in self._markers.items()}
@@ -466,6 +511,12 @@ class ImageCanvas(QtWidgets.QGraphicsView):
             font.setBold(bold)
             font.setPointSizeF(11 if bold else 9.5)
             painter.setFont(font)
+            if not bold:  # a dark box keeps the text legible over burnt-in image text
+                box = painter.boundingRect(inner, places[where], text).adjusted(-3, -1, 3, 1)
+                painter.setPen(QtCore.Qt.PenStyle.NoPen)
+                painter.setBrush(QtGui.QColor(0, 0, 0, 170))
+                painter.drawRoundedRect(box, 3, 3)
+                painter.setBrush(QtCore.Qt.BrushStyle.NoBrush)
             painter.setPen(QtGui.QColor(0, 0, 0))
             painter.drawText(inner.translated(1, 1), places[where], text)
             painter.setPen(QtGui.QColor(255, 214, 102) if bold else QtGui.QColor(220, 224, 228))

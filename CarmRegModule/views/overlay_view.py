@@ -2,9 +2,12 @@
 
 Scene coordinates are detector pixels (u, v) as in the X-ray view. Marker styles:
 - filled circle (green): a level used by the fit (labelled on CT and X-ray), text "T12  1.8 mm" = its PDE;
+  red with a "?" ("T12?  1.8 mm") when the image contradicts the given level names;
 - ring (yellow): a CT-labelled level not used by the fit: where the registration says it is;
 - cross (red): the user's click on the X-ray, so the distance to the projection is visible.
-(The same colours as the overlay.png that ``Logic.report`` writes.)
+The level answer (confirmed, proposed, ambiguous, contradicted, checks failed) is a coloured banner across the
+top; the header under it gives the mPDE of the pose drawn (the final pose, not an intermediate stage's) and the
+magnification. (The same colours and composite as the report page that ``Logic.report.page`` writes.)
 """
 
 from __future__ import annotations
@@ -13,8 +16,10 @@ import numpy as np
 from qtpy import QtCore, QtGui
 
 from .. import overlay_images
-from ..qt_common import CHECK_COLOR, CLICK_COLOR, FITTED_COLOR
+from ..qt_common import CHECK_COLOR, CLICK_COLOR, FITTED_COLOR, STATUS_COLORS
 from .image_canvas import ImageCanvas, MarkerSpec
+
+LEGEND_HEIGHT_PX = 62.0
 
 
 class OverlayView(ImageCanvas):
@@ -32,10 +37,18 @@ class OverlayView(ImageCanvas):
         self.clicks: dict[str, np.ndarray] = {}
         self.show_names = True
         self.summary = ""
+        self.banner: tuple[str, str, str] | None = None  # (headline, reason, colour) of the level answer
+        self.contradicted = False
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
-                   levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "") -> None:
+                   levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "",
+                   banner: tuple[str, str, str] | None = None, contradicted: bool = False) -> None:
+        """``summary``: the header line (mPDE of the pose drawn, magnification); ``banner``: the level answer
+        (headline, reason, colour) drawn across the top; ``contradicted``: the image contradicts the names of
+        the fitted levels, which are then drawn in red with a "?"."""
         from carmreg.logic.image.field import field_mask
+
+        self.banner, self.contradicted = banner, bool(contradicted)
 
         mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
@@ -47,7 +60,7 @@ class OverlayView(ImageCanvas):
 
     def clear(self) -> None:
         self._xray01 = self._drr01 = None
-        self.levels, self.clicks, self.summary = [], {}, ""
+        self.levels, self.clicks, self.summary, self.banner, self.contradicted = [], {}, "", None, False
         self.set_image(None)
 
     def set_mode(self, mode: str) -> None:
@@ -80,9 +93,12 @@ class OverlayView(ImageCanvas):
             u, v = level["uv_px"]
             fitted = bool(level.get("fitted"))
             pde = level.get("pde_mm")
-            text = level["label"] + (f"  {pde:.1f} mm" if pde is not None else "") if self.show_names else ""
+            wrong = fitted and self.contradicted  # a name the image contradicts must not look confirmed
+            name = level["label"] + ("?" if wrong else "")
+            text = name + (f"  {pde:.1f} mm" if pde is not None else "") if self.show_names else ""
+            colour = (STATUS_COLORS["contradicted"] if wrong else FITTED_COLOR) if fitted else CHECK_COLOR
             specs.append(MarkerSpec(("level", level["label"]), u, v, text, "fitted" if fitted else "check",
-                                    1.0, FITTED_COLOR if fitted else CHECK_COLOR))
+                                    1.0, colour))
         for label, uv in self.clicks.items():
             specs.append(MarkerSpec(("click", label), float(uv[0]), float(uv[1]), "", "click", 0.9, CLICK_COLOR))
         return specs
@@ -97,29 +113,101 @@ class OverlayView(ImageCanvas):
         return f"Overlay  (u, v) = ({scene.x():.1f}, {scene.y():.1f}) px"
 
     def corner_text(self) -> dict[str, str]:
+        """The header is stacked on the left (never two texts on one line, so nothing overprints when the
+        view is narrow): the overlay mode, the mPDE of the pose drawn and magnification, levels outside."""
         texts = super().corner_text()
         if self._image is not None:
             mode = {"blend": f"blend  X-ray {100 - self.alpha * 100:.0f} % / DRR {self.alpha * 100:.0f} %",
                     "checkerboard": f"checkerboard  {self.tiles} tiles",
                     "edges": "DRR bone edges on X-ray"}[self.mode]
-            texts["tl"] = f"Overlay: {mode}"
-            texts["tr"] = self.summary
+            lines = [f"Overlay: {mode}"] + ([self.summary] if self.summary else [])
             outside = [lv["label"] for lv in self.levels if not lv.get("in_image", True)]
-            texts["bl"] = ""
             if outside:
-                texts["tl"] += f"\nprojected outside the image: {', '.join(outside)}"
+                lines.append(f"outside the image: {', '.join(outside)}")
+            texts["tl"], texts["tr"], texts["bl"] = "\n".join(lines), "", ""
         return texts
 
+    def banner_rect(self, view: QtCore.QRectF) -> QtCore.QRectF:
+        """Where the level-answer banner goes (top of the view, full width); empty without a banner."""
+        if self.banner is None or self._image is None:
+            return QtCore.QRectF()
+        return QtCore.QRectF(view.left(), view.top(), view.width(), self._banner_height(view.width()))
+
+    def _banner_parts(self, width: float) -> tuple[float, float]:
+        """Heights (px) of the wrapped headline and reason in a banner ``width`` px wide."""
+        head, body = self._banner_fonts()
+        flags = int(QtCore.Qt.TextFlag.TextWordWrap)
+        box = QtCore.QRectF(0, 0, max(width - 20, 50), 1000)
+        headline, reason = (self.banner[0], self.banner[1]) if self.banner else ("", "")
+        h1 = QtGui.QFontMetricsF(head).boundingRect(box, flags, headline).height()
+        h2 = QtGui.QFontMetricsF(body).boundingRect(box, flags, reason).height() if reason else 0.0
+        return h1, h2
+
+    def _banner_height(self, width: float) -> float:
+        h1, h2 = self._banner_parts(width)
+        return 8.0 + h1 + (4.0 + h2 if h2 else 0.0) + 6.0
+
+    def _banner_fonts(self) -> tuple[QtGui.QFont, QtGui.QFont]:
+        head = QtGui.QFont(self.font())
+        head.setPointSizeF(12.5)
+        head.setBold(True)
+        body = QtGui.QFont(self.font())
+        body.setPointSizeF(9.5)
+        return head, body
+
+    def draw_banner(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> float:
+        """The level answer across the top: headline and reason in white on its colour (black on yellow)."""
+        rect = self.banner_rect(view)
+        if rect.isEmpty():
+            return 0.0
+        headline, reason, colour = self.banner
+        painter.setPen(QtCore.Qt.PenStyle.NoPen)
+        painter.setBrush(QtGui.QColor(colour))
+        painter.drawRect(rect)
+        ink = QtGui.QColor(0, 0, 0) if QtGui.QColor(colour).lightnessF() > 0.6 else QtGui.QColor(255, 255, 255)
+        head, body = self._banner_fonts()
+        painter.setPen(ink)
+        painter.setFont(head)
+        text_rect = rect.adjusted(10, 8, -10, -6)
+        wrap = int(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop
+                   | QtCore.Qt.TextFlag.TextWordWrap)
+        painter.drawText(text_rect, wrap, headline)
+        if reason:
+            painter.setFont(body)
+            painter.drawText(text_rect.adjusted(0, self._banner_parts(rect.width())[0] + 4, 0, 0), wrap, reason)
+        return rect.height()
+
+    def fit(self) -> None:
+        """Show the whole image between the banner and header lines above and the legend below (they never
+        cover the image)."""
+        super().fit()
+        rect = self.image_rect()
+        view_h = float(self.viewport().height())
+        top = self._banner_height(self.viewport().width()) if self.banner is not None else 0.0
+        top += 18.0 * (2 + any(not lv.get("in_image", True) for lv in self.levels)) if self.levels else 0.0
+        bottom = LEGEND_HEIGHT_PX + 8.0 if self._image is not None else 0.0
+        free = view_h - top - bottom
+        if rect.isEmpty() or top + bottom <= 0 or free <= 50:
+            return
+        target = rect.adjusted(0, -rect.height() * top / free, 0, rect.height() * bottom / free)
+        self.resetTransform()
+        self.fitInView(target, QtCore.Qt.AspectRatioMode.KeepAspectRatio)
+        self.centerOn(target.center())
+        self._auto_fit = True
+
     def draw_annotations(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> None:
-        super().draw_annotations(painter, view)
-        entries = [("fitted", FITTED_COLOR, "fitted level (PDE to click)"),
+        top = self.draw_banner(painter, view)
+        super().draw_annotations(painter, view.adjusted(0, top, 0, 0))
+        fitted = (STATUS_COLORS["contradicted"], "name contradicted by the image") if self.contradicted else \
+            (FITTED_COLOR, "fitted level (PDE to click)")
+        entries = [("fitted", *fitted),
                    ("check", CHECK_COLOR, "CT level not fitted (projected)"),
                    ("click", CLICK_COLOR, "X-ray click")]
         font = painter.font()
         font.setBold(False)
         font.setPointSizeF(9.0)
         painter.setFont(font)
-        box = QtCore.QRectF(view.left() + 8, view.bottom() - 70, 230, 62)
+        box = QtCore.QRectF(view.left() + 8, view.bottom() - LEGEND_HEIGHT_PX - 8, 230, LEGEND_HEIGHT_PX)
         painter.setPen(QtCore.Qt.PenStyle.NoPen)
         painter.setBrush(QtGui.QColor(0, 0, 0, 150))
         painter.drawRoundedRect(box, 4, 4)

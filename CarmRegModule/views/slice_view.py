@@ -176,9 +176,13 @@ class SliceView(ImageCanvas):
         if self.geometry_ is not None:
             left, right, top, bottom = self.geometry_.edges
             texts.update(left=left, right=right, top=top, bottom=bottom)
-            axis = {"axial": "S", "coronal": "A", "sagittal": "R"}[self.orientation]  # depth along normal
-            texts["tr"] = f"{axis} {self.depth_mm:+.1f} mm"
-            texts["br"] = f"slice step {self.geometry_.step_mm:.2f} mm   zoom {self.zoom_level():.2f}"
+            # the slice position as the LPS coordinate it fixes (the tables are in LPS too, not RAS)
+            k = int(np.argmax(np.abs(self.geometry_.normal)))
+            coordinate = self.depth_mm * float(self.geometry_.normal[k])
+            # one stacked corner (the bottom edge carries the orientation letter: nothing beside it)
+            texts["tr"] = f"LPS {'xyz'[k]} {coordinate:+.1f} mm\nstep {self.geometry_.step_mm:.2f} mm\nzoom " \
+                          f"{self.zoom_level():.2f}"
+            texts["br"] = ""
         return texts
 
     def draw_scene_overlay(self, painter: QtGui.QPainter) -> None:

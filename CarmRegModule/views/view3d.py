@@ -155,12 +155,13 @@ class View3D(QtWidgets.QWidget):
         title.setStyleSheet("font-weight: 600;")
         bar.addWidget(title)
         bar.addStretch(1)
-        for name in ("AP", "Lateral", "Oblique", "Superior"):
+        for name, short in (("AP", "AP"), ("Lateral", "Lat"), ("Oblique", "Obl"), ("Superior", "Sup")):
             button = QtWidgets.QToolButton()
-            button.setText(name)
+            button.setText(short)
+            button.setToolTip(f"{name} view")
             button.clicked.connect(lambda _=False, n=name: self.show_view(n))
             bar.addWidget(button)
-        self.bone_check = QtWidgets.QCheckBox("Bone >=")
+        self.bone_check = QtWidgets.QCheckBox("Bone \u2265")
         self.bone_check.setChecked(True)
         self.bone_check.toggled.connect(lambda _: self.refresh())
         bar.addWidget(self.bone_check)
@@ -174,7 +175,10 @@ class View3D(QtWidgets.QWidget):
                                        "hide the spine")
         self.threshold_spin.valueChanged.connect(lambda _v: self.set_volume(self._volume))
         bar.addWidget(self.threshold_spin)
-        layout.addLayout(bar)
+        holder = QtWidgets.QWidget()  # the bar never sets the view's minimum width (it clips when narrow)
+        holder.setLayout(bar)
+        holder.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
+        layout.addWidget(holder)
         self.stack = QtWidgets.QStackedWidget()
         self.image_label = _DragLabel(self)
         self.image_label.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
@@ -271,7 +275,8 @@ class View3D(QtWidgets.QWidget):
         set_view(plotter, self._view_name, np.asarray(centre, float), 1000.0)
         plotter.reset_camera()  # fits the bounding sphere vertically; narrow views need more room
         width, height = self._render_size() if self.mode != "interactive" else (self.width(), self.height())
-        plotter.camera.zoom(1.1 * min(1.0, width / max(height, 1)))
+        # the bounding sphere of the long C-arm frustum leaves most of the view empty: come closer with it
+        plotter.camera.zoom((1.5 if self._carm is not None else 1.1) * min(1.0, width / max(height, 1)))
         plotter.reset_camera_clipping_range()
 
     def _show_offscreen(self, plotter) -> None:

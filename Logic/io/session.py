@@ -11,8 +11,12 @@ A session records the inputs and the user's work, never derived data:
 - ``ct_points``: CT centroids, ``[{"label": "T12", "position_lps_mm": [x, y, z]}]`` (LPS mm);
 - ``xray_points``: X-ray centroids, ``[{"label": "T12" | null, "uv_px": [column, row]}]`` (detector px,
   pixel centres at integers);
-- ``last_result``: a small summary of the last registration (pose, P, mPDE per stage, per-level PDE, the
-  output folder), for the record; results are recomputed, not restored.
+- ``last_result``: a summary of the last registration (pose, P, the geometry it used (isocentre, SOD),
+  magnification, mPDE per stage, every level's projected ``uv_px``, fitted or not, PDE and click, the level
+  check, ``ok`` and warnings, ``stale`` when the inputs changed after it, the output folder): the window shows it
+  again on reopening (without the DRR, which is recomputed by registering again);
+- ``session_file``: in an autosave only, the session file the work belongs to (so a recovered session keeps
+  its name).
 
 File format (``*.carmreg.json``)::
 
@@ -59,6 +63,7 @@ class Session:
     xray_points: list[dict] = field(default_factory=list)
     parameters: dict = field(default_factory=dict)
     last_result: dict | None = None
+    session_file: str | None = None         # autosave only: the session file this work was saved as
 
     # ------------------------------------------------------------------------------------ landmarks
     def ct_landmarks(self) -> Landmarks3D:
@@ -98,6 +103,7 @@ class Session:
                           "xray": to_jsonable(_sorted_points(self.xray_points))},
             "parameters": to_jsonable(self.parameters),
             "last_result": to_jsonable(self.last_result),
+            **({"session_file": str(self.session_file)} if self.session_file else {}),
         }
 
     @classmethod
@@ -126,7 +132,7 @@ class Session:
                       ct_points=_check_ct_points(_list(landmarks, "ct", where), where),
                       xray_points=_check_xray_points(_list(landmarks, "xray", where), where),
                       parameters=_mapping(doc, "parameters", where),
-                      last_result=last_result)
+                      last_result=last_result, session_file=_session_file(doc.get("session_file"), where))
         return session
 
 
@@ -177,16 +183,30 @@ def _check_overrides(overrides: dict, where: str) -> dict:
     return overrides
 
 
+def _session_file(value, where: str) -> str | None:
+    """The autosave's ``session_file`` (a path string) or None; anything else is a damaged file."""
+    if value in (None, ""):
+        return None
+    if not isinstance(value, str):
+        raise InputFileError(f"{where}: \"session_file\" {quote(value, 40)} is not a path")
+    return value
+
+
 def summarize_result(result, out_dir: str | Path | None = None) -> dict:
     """A small JSON summary of a RegistrationResult for the session record (pose, P, mPDE, per level)."""
     stages = [{"name": s.name, "mpde_mm": to_jsonable(s.mpde_mm), "seconds": to_jsonable(s.seconds)}
               for s in getattr(result, "stages", [])]
-    levels = [{k: to_jsonable(v) for k, v in lv.items() if k in ("label", "uv_px", "fitted", "pde_mm")}
-              for lv in getattr(result, "levels", [])]
+    keys = ("label", "uv_px", "fitted", "pde_mm", "in_image", "clicked_uv_px", "name_margin")
+    levels = [{k: to_jsonable(v) for k, v in lv.items() if k in keys} for lv in getattr(result, "levels", [])]
     pose = result.pose.as_dict() if hasattr(result.pose, "as_dict") else to_jsonable(result.pose)
+    geometry = getattr(result, "geometry", None)
     return {"ok": bool(getattr(result, "ok", False)), "pose": pose,
             "projection_matrix": to_jsonable(np.asarray(result.projection_matrix)),
+            "magnification": to_jsonable(getattr(result, "magnification", None)),
+            "isocenter_lps_mm": to_jsonable(list(geometry.isocenter_lps_mm)) if geometry is not None else None,
+            "sod_mm": to_jsonable(geometry.sod_mm) if geometry is not None else None,
             "stages": stages, "levels": levels, "warnings": list(getattr(result, "warnings", [])),
+            "level_check": to_jsonable(getattr(result, "level_check", None)),
             "out_dir": str(out_dir) if out_dir else None}
 
 

@@ -52,6 +52,7 @@ class FitContext:
     depth_far_mm: float = 400.0
     depth_step_mm: float = 10.0
     should_stop: object = None
+    on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
 
 
 @dataclass
@@ -113,6 +114,8 @@ def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.
 def fit_labelling(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
     """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose, then the
     wide image refinement that scores it (module docstring). Returns the same object, filled."""
+    if ctx.on_labelling is not None:
+        ctx.on_labelling(list(fit.labels))
     fit.fine = fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine,
                            should_stop=ctx.should_stop)
     return _refine_from(ctx, fit, fit.fine.pose)
@@ -120,6 +123,8 @@ def fit_labelling(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
 
 def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
     """Another start of the image refinement for a registered labelling; the better refinement is kept."""
+    if ctx.on_labelling is not None:
+        ctx.on_labelling(list(fit.labels))
     return _refine_from(ctx, fit, np.asarray(start_pose, float))
 
 

@@ -374,7 +374,9 @@ class CarmRegLogic:
         ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
                          state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
                          p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm, p.depth_step_mm,
-                         self._check_cancel)
+                         self._check_cancel,
+                         self._labelling_progress(len(clicks.labels), clicks.named,
+                                                  len(ct_level_names(state.ct_landmarks)), p.identify))
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
@@ -390,6 +392,26 @@ class CarmRegLogic:
         if ident.status == "ambiguous":
             state.warnings.append(ident.message)
         return {"enabled": True, **ident.as_dict()}
+
+    def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
+        """The levels stage's progress hook (``FitContext.on_labelling``): "labelling 3 of 7: T10, T11, T12"
+        before each registration of a labelling. 7 = the usual count: the first candidates and the winner's two
+        neighbours (unnamed; at most the runs of consecutive CT levels), the given names and one level up and
+        down (named), the map's peaks and one challenge (no clicks), plus the leading two refitted from each
+        other's pose (``confirm_leaders``); raised when more are needed."""
+        runs = max(n_ct_levels - n_clicks + 1, 1)
+        expected = p.image_starts + 2 if n_clicks == 0 else min(3 if named else p.candidates + 2, runs)
+        if n_clicks and p.confirm_leaders:
+            expected += min(2, runs - 1)
+        count = {"done": 0, "expected": expected}
+
+        def on_labelling(labels: list) -> None:
+            count["done"] += 1
+            count["expected"] = max(count["expected"], count["done"])
+            done, total = count["done"], count["expected"]
+            what = ", ".join(labels) if labels else "a pose from the image"
+            self._report("levels", min((done - 1) / total, 0.99), f"labelling {done} of {total}: {what}")
+        return on_labelling
 
     def _refine(self, state: RegistrationState) -> dict:
         p = state.parameters

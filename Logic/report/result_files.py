@@ -20,6 +20,7 @@ Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.trans
   along columns and rows, then the detector normal; it opens in 3D Slicer in place).
 - ``carm.tfm``: ITK affine, the rigid transform lps_to_camera (see ``transform_io``).
 - ``convergence.png`` (paper Fig. 9-10) and ``similarity_maps.png`` (paper Fig. 6).
+- ``report.pdf``: the one-page report (``report.page``).
 - ``slicer/CarmReg.mrml`` and its files, when the CT is given: a 3D Slicer scene (see ``slicer_scene``).
 """
 
@@ -260,7 +261,7 @@ def similarity_figure(result) -> bytes:
 
 
 RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm", "convergence.png",
-                "similarity_maps.png", "slicer")
+                "similarity_maps.png", "slicer", "report.pdf")
 """Every name ``save_result`` has written (an old folder's copies are replaced or removed, never kept)."""
 
 
@@ -311,6 +312,8 @@ def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dic
     paths["convergence"] = atomic_write_bytes(out / "convergence.png", convergence_figure(result))
     if result.similarity_maps:
         paths["similarity"] = atomic_write_bytes(out / "similarity_maps.png", similarity_figure(result))
+    from carmreg.logic.report.page import write_report_pdf
+    paths["report"] = write_report_pdf(out / "report.pdf", result, xray_pixels, clicked)
     if ct is not None and ct_landmarks is not None:
         from carmreg.logic.report.slicer_scene import write_slicer_scene
         paths.update(write_slicer_scene(out, result, ct, ct_landmarks, xray_pixels, clicked))

@@ -37,6 +37,11 @@ def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir,
     projected = json.loads((scene / "projected_levels.mrk.json").read_text())["markups"][0]["controlPoints"]
     assert [(p["label"], p["carmreg"]["uv_px"]) for p in projected] == [(lv["label"], lv["uv_px"])
                                                                          for lv in doc["levels"]]
+    pypdf = pytest.importorskip("pypdf")  # the one-page report carmreg register writes beside result.json
+    pages = pypdf.PdfReader(str(tmp_path / "out" / "report.pdf")).pages
+    text = pages[0].extract_text()
+    assert len(pages) == 1 and "LEVELS CONFIRMED BY THE IMAGE: " + ", ".join(check["assigned_labels"]) in text
+    assert "NOT FOR DIAGNOSIS" in text and "unnamed clicks, named from the image" in text
 
 
 def test_no_clicks_names_the_levels_in_view(sample_case_dir, tmp_path, capsys):

@@ -1,0 +1,340 @@
+"""The one-page report of a registration: a PDF (or PNG) a surgeon can keep (matplotlib, no Qt).
+
+What the page shows, top to bottom:
+
+- the title, the time it was made and the line **"Research software - not for diagnosis"**;
+- the **level answer** in words and colour (green confident, yellow proposed from the image alone, amber
+  ambiguous, red contradicted, grey not checked) with its reason (``level_check["message"]``) and the failed
+  checks when ``ok`` is False;
+- the **overlay as on screen**: the X-ray (bone bright, inside its exposed field) with the DRR at the found pose
+  blended in amber (the window's default "blend" mode; the window passes its own composite), every CT-labelled
+  level projected and named: filled green disc = a level the fit used, with its PDE (mm on the detector) to the
+  click; yellow ring = a level not clicked; red cross = the click. When the image contradicts the given names,
+  the clicked levels are drawn in red with a "?";
+- the **named levels** (projected ``uv_px`` = (column, row) px, 0-based pixel centres; PDE in detector mm);
+- the **pose** (the six C-arm parameters about the nominal AP pose, mm and degrees), the **magnification** at
+  the isocentre (SDD / SOD at the pose) and the **mPDE of the pose drawn** (mean PDE of the clicked levels at
+  the final pose: the accuracy of what is on the page, not of an intermediate stage);
+- the **inputs**: file names, the C-arm geometry values and where each came from (DICOM tag, manual, preset,
+  default);
+- the **versions** (CarmReg, Python, numpy, scipy, cma, numba) and the CMA-ES seed.
+
+``write_report_pdf`` writes one A4 page atomically; ``write_report_png`` the same page as a PNG (README).
+Text in the PDF is real text (TrueType fonts embedded), so it can be searched and read back.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from carmreg.logic.io.atomic import atomic_write
+
+A4_INCHES = (8.27, 11.69)
+STATUS_COLOURS = {"confident": "#2b8a3e", "proposed": "#b08900", "ambiguous": "#e8590c",
+                  "contradicted": "#c92a2a", None: "#495057"}
+STATUS_WORDS = {"confident": "LEVELS CONFIRMED BY THE IMAGE", "proposed": "LEVELS PROPOSED (NOT CONFIRMED)",
+                "ambiguous": "LEVELS AMBIGUOUS", "contradicted": "LEVEL NAMES CONTRADICTED BY THE IMAGE",
+                None: "LEVEL NAMES NOT CHECKED"}
+FITTED_COLOUR, CHECK_COLOUR, CLICK_COLOUR, WRONG_COLOUR = "#40c057", "#ffd228", "#ff4d4d", "#ff6b6b"
+DRR_TINT = np.array([1.0, 0.62, 0.25], np.float32)  # the window's blend colour (overlay_images.DRR_TINT)
+NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
+
+
+# ----------------------------------------------------------------------------------------------- numbers
+
+def drawn_mpde_mm(levels: list[dict]) -> float | None:
+    """mPDE of the pose drawn: mean PDE (detector mm) of the levels the fit used, at the final pose (their
+    ``pde_mm`` are computed with the final projection matrix). None when no level was clicked."""
+    values = [float(lv["pde_mm"]) for lv in levels if lv.get("fitted") and lv.get("pde_mm") is not None]
+    return float(np.mean(values)) if values else None
+
+
+def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
+    """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
+    the margin and how to read it to the reason."""
+    check = level_check or {}
+    status = check.get("status")
+    headline = STATUS_WORDS.get(status, str(status).upper())
+    mode = check.get("mode")
+    if mode == "image_only":
+        names = ", ".join(check.get("visible_labels") or []) or "none"
+    else:
+        names = ", ".join(check.get("assigned_labels") or [])
+    if names:
+        headline += f": {names}"
+    reason = check.get("message") or ("the level check was not run (fully named clicks, level check off)"
+                                      if not check else "")
+    margin = check.get("margin")
+    if detail and margin is not None and np.isfinite(margin):
+        from carmreg.logic.registration.level_confidence import ConfidenceRule
+
+        reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
+                  f"is better; {ConfidenceRule().margin:.2f} separates confident from ambiguous)"
+    colour = STATUS_COLOURS.get(status, STATUS_COLOURS[None])
+    if not ok and status not in ("contradicted",):
+        colour = STATUS_COLOURS["contradicted"]
+    return headline, reason.strip(), colour
+
+
+def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
+    """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
+    the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
+    reason; None when there is nothing to say (level check off and every check passed)."""
+    if not level_check and ok:
+        return None
+    headline, reason, colour = level_answer(level_check, ok, detail=False)
+    if not ok and (level_check or {}).get("status") != "contradicted":
+        headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
+    return headline, reason, colour
+
+
+# ----------------------------------------------------------------------------------------------- overlay
+
+def _normalise(image: np.ndarray, mask: np.ndarray | None, low_pct: float = 1.0, high_pct: float = 99.5
+               ) -> np.ndarray:
+    """Percentile window (inside the exposed field ``mask``) to 0..1; 0 outside the mask."""
+    img = np.asarray(image, np.float32)
+    inside = img[mask] if mask is not None and mask.any() else img.ravel()
+    sample = inside[:: max(1, inside.size // 250_000)]
+    lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
+    out = np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
+
+
+def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, bone_dark: bool,
+                     alpha: float = 0.5, mask: np.ndarray | None = None) -> np.ndarray:
+    """(rows, cols, 3) uint8: the window's default overlay - the X-ray bone bright in grey, the DRR added in
+    amber with weight ``alpha``, black outside the exposed field ``mask`` (default ``image.field.field_mask``)."""
+    from carmreg.logic.image.field import field_mask
+
+    if mask is None or np.shape(mask) != np.shape(xray_pixels):
+        mask = field_mask(xray_pixels)
+    xray01 = _normalise(xray_pixels, mask)
+    xray01 = np.where(mask, 1.0 - xray01 if bone_dark else xray01, 0.0)
+    drr01 = _normalise(drr_line_integral, mask) if drr_line_integral is not None else np.zeros_like(xray01)
+    grey = (1.0 - alpha) * xray01[..., None] * np.ones(3, np.float32)
+    rgb = grey + alpha * drr01[..., None] * DRR_TINT[None, None, :] / DRR_TINT.max()
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool) -> None:
+    """The composite with the projected levels, their names and PDE, and the clicks (image[row, col];
+    marker positions (u, v) = (column, row) px)."""
+    ax.imshow(rgb, interpolation="lanczos")
+    rows, cols = rgb.shape[:2]
+    font = 7.5
+    for lv in levels:
+        if not lv.get("in_image", True):
+            continue
+        u, v = lv["uv_px"]
+        fitted = bool(lv.get("fitted"))
+        colour = (WRONG_COLOUR if contradicted else FITTED_COLOUR) if fitted else CHECK_COLOUR
+        if fitted:
+            ax.plot(u, v, "o", ms=5.5, color=colour, mec="black", mew=0.6)
+        else:
+            ax.plot(u, v, "o", ms=7, mfc="none", mec=colour, mew=1.4)
+        pde = lv.get("pde_mm")
+        text = lv["label"] + ("?" if fitted and contradicted else "") + (f"  {pde:.1f} mm" if pde is not None else "")
+        ax.annotate(text, (u, v), xytext=(7, -3), textcoords="offset points", color=colour, fontsize=font,
+                    fontweight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55,
+                                             "ec": "none"})  # a box, not an outline: the name stays text
+    for uv in (clicked or {}).values():
+        ax.plot(float(uv[0]), float(uv[1]), "+", ms=9, mew=1.3, color=CLICK_COLOUR)
+    ax.set_xlim(-0.5, cols - 0.5)
+    ax.set_ylim(rows - 0.5, -0.5)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+# ----------------------------------------------------------------------------------------------- text blocks
+
+def _levels_block(levels: list[dict]) -> str:
+    """The levels projected into the image (head to sacrum), then the names of those outside it."""
+    lines = ["level  clicked  PDE mm  (u, v) px"]
+    for lv in levels:
+        if not lv.get("in_image", True):
+            continue
+        pde = lv.get("pde_mm")
+        u, v = lv["uv_px"]
+        lines.append(f"{lv['label']:<6} {'yes' if lv.get('fitted') else 'no':<8} "
+                     f"{'-' if pde is None else f'{pde:.2f}':>6}  ({u:.0f}, {v:.0f})")
+    outside = [lv["label"] for lv in levels if not lv.get("in_image", True)]
+    if outside:
+        lines.append("")
+        lines.append(_wrap("outside the image: " + ", ".join(outside), 38))
+    return "\n".join(lines)
+
+
+def _pose_block(doc: dict, drawn: float | None) -> str:
+    pose = doc["pose"]
+    units = {"tx_mm": "mm", "ty_mm": "mm", "tz_mm": "mm", "rx_deg": "deg", "ry_deg": "deg", "rz_deg": "deg"}
+    lines = ["C-arm pose about the nominal AP view (CT LPS frame):"]
+    names = list(pose)
+    for i in (0, 3):
+        lines.append("  " + "   ".join(f"{n.split('_')[0]} {pose[n]:+8.2f} {units.get(n, '')}"
+                                       for n in names[i:i + 3]))
+    lines.append(f"magnification at the isocentre {doc['magnification']:.3f}")
+    lines.append("mPDE of the pose drawn " + (f"{drawn:.2f} mm" if drawn is not None else "- (no clicks)")
+                 + " (mean detector distance, clicked levels)")
+    stages = [s for s in doc["stages"] if s.get("mpde_mm") is not None]
+    if stages:
+        lines.append("per stage: " + ", ".join(f"{s['name']} {s['mpde_mm']:.2f}" for s in stages) + " mm")
+    return "\n".join(lines)
+
+
+def _inputs_block(doc: dict) -> str:
+    inputs, geometry = doc.get("inputs") or {}, doc["geometry"]
+    sources = geometry.get("sources") or {}
+    lines = []
+    for key, title in (("ct", "CT"), ("ct_landmarks", "CT centroids"), ("xray", "X-ray"),
+                       ("xray_landmarks", "X-ray clicks")):
+        value = inputs.get(key)
+        if value:
+            lines.append(f"{title}: {_short_path(str(value))}")
+    spacing = geometry["pixel_spacing_mm"]
+    values = {"sdd_mm": f"SDD {geometry['sdd_mm']:.1f} mm",
+              "pixel_spacing_mm": f"pixel spacing {spacing[0]:.4g} x {spacing[1]:.4g} mm (column x row)",
+              "principal_point_px": "principal point ({:.1f}, {:.1f}) px".format(*geometry["principal_point_px"]),
+              "sod_mm": f"SOD {geometry['sod_mm']:.1f} mm"}
+    for key, text in values.items():
+        lines.append(f"{text}  <- {sources.get(key, 'default' if key == 'sod_mm' else 'not recorded')}")
+    lines.append(f"detector {geometry['size_px'][0]} x {geometry['size_px'][1]} px; isocentre at the CT centre "
+                 "(LPS {:.1f}, {:.1f}, {:.1f}) mm".format(*geometry["isocenter_lps_mm"]))
+    return "\n".join(lines)
+
+
+def _labellings_block(check: dict | None) -> str:
+    """How the levels were named: the mode and every labelling registered with its score, best first."""
+    if not check:
+        return "The level names were not checked against the image (level check off)."
+    mode = {"named": "named clicks, checked against the names shifted up and down",
+            "partly_named": "partly named clicks, the others named from the image",
+            "unnamed": "unnamed clicks, named from the image",
+            "image_only": "no clicks: levels from the image alone"}.get(check.get("mode"), str(check.get("mode")))
+    tried = sorted((h for h in check.get("hypotheses") or [] if h.get("refined", True) and h.get("labels")),
+                   key=lambda h: float(h.get("score", np.inf)))
+    seen, parts = set(), []
+    for h in tried:
+        key = tuple(h["labels"])
+        if key not in seen:
+            seen.add(key)
+            parts.append(f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(key) > 1 else key[0]} "
+                         f"{float(h['score']):.3f}")
+    text = f"Mode: {mode}."
+    if parts:
+        text += " Labellings registered, score (lower is better): " + ", ".join(parts[:8]) + "."
+    return _wrap(text, 110)
+
+
+def _short_path(path: str, width: int = 78) -> str:
+    return path if len(path) <= width else "..." + path[-(width - 3):]
+
+
+def _versions_line(doc: dict) -> str:
+    rep = doc.get("reproducibility") or {}
+    parts = [f"CarmReg {rep.get('carmreg', '?')}"] + [f"{k} {rep[k]}" for k in ("python", "numpy", "scipy", "cma",
+                                                                               "numba") if k in rep]
+    return "Versions: " + ", ".join(parts) + f"; seed {rep.get('seed', '?')}"
+
+
+def _wrap(text: str, width: int) -> str:
+    return "\n".join(textwrap.fill(par, width) for par in text.split("\n"))
+
+
+# ----------------------------------------------------------------------------------------------- page
+
+def _bone_dark(result, bone_dark: bool | None) -> bool:
+    """The X-ray's polarity: as given, else as the registration found it (``result.appearance``), else dark."""
+    if bone_dark is not None:
+        return bool(bone_dark)
+    appearance = getattr(result, "appearance", None)
+    return bool(getattr(appearance, "bone_dark", True))
+
+
+def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, bone_dark: bool | None = None,
+                  composite_rgb: np.ndarray | None = None, made_utc: str | None = None):
+    """The report page as a matplotlib Figure (A4 portrait). ``composite_rgb``: the overlay image as the window
+    shows it (default: ``screen_composite``); ``clicked``: {name: (u, v) px} of the X-ray clicks; ``bone_dark``:
+    the X-ray's polarity (default: the registration's ``appearance``)."""
+    from matplotlib.figure import Figure
+
+    from carmreg.logic.report.result_files import result_dict
+
+    bone_dark = _bone_dark(result, bone_dark)
+    doc = result_dict(result)
+    check = doc.get("level_check") or None
+    status = (check or {}).get("status")
+    rgb = composite_rgb if composite_rgb is not None else screen_composite(
+        xray_pixels, result.drr_line_integral, bone_dark, mask=getattr(result, "field_mask", None))
+    drawn = drawn_mpde_mm(doc["levels"])
+    made = made_utc or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+    fig = Figure(figsize=A4_INCHES, dpi=100, facecolor="white")
+    mono = {"family": "monospace", "fontsize": 7.2, "va": "top"}
+    fig.text(0.05, 0.975, "CarmReg - CT to C-arm X-ray registration", fontsize=15, fontweight="bold", va="top")
+    fig.text(0.95, 0.975, made, fontsize=8, ha="right", va="top", color="#495057")
+    fig.text(0.05, 0.948, NOT_FOR_DIAGNOSIS, fontsize=9, fontweight="bold", color="#c92a2a", va="top")
+
+    headline, reason, colour = level_answer(check, bool(doc["ok"]))
+    banner = fig.add_axes((0.05, 0.865, 0.90, 0.07))
+    banner.set_axis_off()
+    banner.set_xlim(0, 1)
+    banner.set_ylim(0, 1)
+    banner.add_patch(_box(colour))
+    banner.text(0.015, 0.78, headline, fontsize=11.5, fontweight="bold", color="white", va="center",
+                transform=banner.transAxes)
+    text = reason if doc["ok"] else reason + ("\n" if reason else "") + "CHECKS FAILED: " + "; ".join(doc["warnings"])
+    banner.text(0.015, 0.56, _wrap(text, 128), fontsize=7.2, color="white", va="top", transform=banner.transAxes)
+
+    ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))
+    _draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted")
+    fig.text(0.05, 0.438, "Overlay: X-ray (grey, bone bright) + DRR at the found pose (amber). Green disc: level "
+             "used by the fit, with its\nPDE to the click; yellow ring: level not clicked; red cross: click"
+             + ("; red '?': name contradicted." if status == "contradicted" else "."), fontsize=6.8, va="top",
+             color="#343a40")
+
+    fig.text(0.655, 0.853, "Named levels (projected)", fontsize=9, fontweight="bold", va="top")
+    fig.text(0.655, 0.835, _levels_block(doc["levels"]), **mono)
+    fig.text(0.05, 0.39, "Pose and accuracy", fontsize=9, fontweight="bold", va="top")
+    fig.text(0.05, 0.372, _pose_block(doc, drawn), **mono)
+    fig.text(0.05, 0.285, "Inputs and geometry (value <- where it came from)", fontsize=9, fontweight="bold",
+             va="top")
+    fig.text(0.05, 0.267, _inputs_block(doc), **mono)
+    fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
+    fig.text(0.05, 0.137, _labellings_block(check), fontsize=7.2, va="top")
+    other = [w for w in doc["warnings"] if doc["ok"]]
+    if other:
+        fig.text(0.05, 0.095, _wrap("Warnings: " + "; ".join(other), 120), fontsize=7, color="#e8590c", va="top")
+    fig.text(0.05, 0.045, _versions_line(doc), fontsize=6.8, va="top", color="#495057")
+    fig.text(0.05, 0.028, "Frames: CT LPS mm; detector (u, v) = (column, row) px, 0-based pixel centres; PDE and "
+             "mPDE in mm on the detector. Full numbers: result.json.", fontsize=6.5, va="top", color="#495057")
+    return fig
+
+
+def _box(colour: str):
+    from matplotlib.patches import FancyBboxPatch
+
+    return FancyBboxPatch((0.0, 0.0), 1.0, 1.0, boxstyle="round,pad=0,rounding_size=0.02", facecolor=colour,
+                          edgecolor="none")
+
+
+def write_report_pdf(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
+                     bone_dark: bool | None = None, composite_rgb: np.ndarray | None = None) -> Path:
+    """Write the one-page report as a PDF, atomically (see module docstring)."""
+    import matplotlib
+
+    fig = report_figure(result, xray_pixels, clicked, bone_dark, composite_rgb)
+    meta = {"Title": "CarmReg registration report", "Creator": "CarmReg", "Subject": NOT_FOR_DIAGNOSIS}
+    with matplotlib.rc_context({"pdf.fonttype": 42}):
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="pdf", metadata=meta))
+
+
+def write_report_png(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
+                     bone_dark: bool | None = None, composite_rgb: np.ndarray | None = None, dpi: int = 110) -> Path:
+    """The same page as a PNG (for the README and quick looks)."""
+    fig = report_figure(result, xray_pixels, clicked, bone_dark, composite_rgb)
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))

@@ -1,0 +1,76 @@
+"""The one-page report (``report.page``): written as a real one-page PDF whose text reads back - the level
+answer in words with its reason, the named levels with their distances, the pose, the magnification, the
+mPDE of the pose drawn, the inputs with the geometry sources, the versions and "not for diagnosis"."""
+
+import numpy as np
+import pytest
+
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.registration.pipeline import RegistrationParameters, RegistrationResult, StageResult
+from carmreg.logic.report.page import answer_banner, drawn_mpde_mm, level_answer, write_report_pdf
+
+pypdf = pytest.importorskip("pypdf")
+
+
+def _result(status: str) -> RegistrationResult:
+    """A small result by hand (no pipeline): three clicked levels and one more, 128 x 96 px detector."""
+    intr = CarmIntrinsics(1000.0, (0.8, 0.8), (128, 96), sources={"sdd_mm": "manual", "pixel_spacing_mm":
+                                                                   "DICOM (0018,1164) ImagerPixelSpacing"})
+    geometry = CarmGeometry(intr, (0.0, 0.0, 0.0), 600.0)
+    pose = CarmPose(5.0, 1.0, -2.0, 1.0, 0.5, -0.5)
+    P = geometry.projection_matrix(pose)
+    points = {"T10": [0, 0, 15.0], "T11": [0, 0, 0.0], "T12": [0, 0, -15.0], "L1": [0, 0, -30.0]}  # in view
+    levels = []
+    for i, (label, point) in enumerate(points.items()):
+        uv = project(P, np.array([point]))[0]
+        fitted = label != "L1"
+        levels.append({"label": label, "uv_px": uv.tolist(), "fitted": fitted, "in_image": True,
+                       "pde_mm": [0.5, 1.5, 1.0][i] if fitted else None,
+                       "clicked_uv_px": (uv + 1).tolist() if fitted else None, "name_margin": None})
+    given, other = ["T10", "T11", "T12"], ["T11", "T12", "L1"]
+    check = {"mode": "named", "status": status, "margin": -0.08 if status == "contradicted" else 0.08,
+             "message": "level names CONTRADICTED: the image fits T11, T12, L1 better than the names given "
+                        "(T10, T11, T12)" if status == "contradicted" else "level names T10, T11, T12: agree",
+             "assigned_labels": given, "winner_labels": other if status == "contradicted" else given,
+             "runner_up_labels": other, "hypotheses": [{"labels": given, "score": 0.6, "refined": True},
+                                                       {"labels": other, "score": 0.52, "refined": True}]}
+    rows, cols = 96, 128
+    xray = np.add.outer(np.arange(rows), np.arange(cols)).astype(np.float32)
+    stages = [StageResult("fine", pose, 0.48, 0.1), StageResult("refine", pose, 1.0, 1.0)]
+    return RegistrationResult(pose=pose, projection_matrix=P, geometry=geometry, stages=stages, levels=levels,
+                              drr_line_integral=xray[::-1].copy(), xray_line_integral=xray, convergence=[],
+                              trajectory=[], similarity_maps={}, database_grid={}, ok=status != "contradicted",
+                              warnings=[check["message"]] if status == "contradicted" else [],
+                              parameters=RegistrationParameters(), level_check=check,
+                              inputs={"ct": "/data/ct.nrrd", "xray": "/data/xray.dcm", "geometry_sources":
+                                      dict(intr.sources)})
+
+
+def test_the_page_reads_back_with_the_answer_levels_pose_inputs_and_versions(tmp_path):
+    result = _result("contradicted")
+    xray = result.xray_line_integral
+    path = write_report_pdf(tmp_path / "report.pdf", result, xray, {"T10": [10.0, 20.0]}, bone_dark=False)
+    reader = pypdf.PdfReader(str(path))
+    assert len(reader.pages) == 1
+    text = reader.pages[0].extract_text()
+    for expected in ("NOT FOR DIAGNOSIS", "LEVEL NAMES CONTRADICTED BY THE IMAGE: T10, T11, T12",
+                     "the image fits T11, T12, L1 better", "CHECKS FAILED", "T10?", "L1",
+                     "mPDE of the pose drawn 1.00 mm", "magnification at the isocentre",
+                     "SDD 1000.0 mm  <- manual", "<- DICOM (0018,1164) ImagerPixelSpacing", "CT: /data/ct.nrrd",
+                     "CarmReg 0.1.0", "seed 1", "T10-T12 0.600"):
+        assert expected in text, expected
+    assert "0.48" not in text.split("mPDE of the pose drawn")[1].split("\n")[0]  # not the fine stage's
+
+
+def test_drawn_mpde_and_the_answer_in_words_and_colour():
+    result = _result("confident")
+    assert drawn_mpde_mm(result.levels) == pytest.approx(1.0)  # (0.5 + 1.5 + 1.0) / 3, L1 not clicked
+    assert drawn_mpde_mm([{"label": "T1", "fitted": False, "pde_mm": None}]) is None
+    headline, reason, colour = level_answer(result.level_check)
+    assert headline == "LEVELS CONFIRMED BY THE IMAGE: T10, T11, T12" and colour == "#2b8a3e"
+    assert "lower is better" in reason and "0.02" in reason
+    assert answer_banner(None, True, []) is None
+    failed = answer_banner(None, False, ["fine-stage mPDE 9.0 mm exceeds 6.0 mm"])
+    assert failed[0].startswith("CHECKS FAILED") and failed[1].startswith("fine-stage") and failed[2] == "#c92a2a"
+    red = level_answer(_result("contradicted").level_check, ok=False)
+    assert red[0].startswith("LEVEL NAMES CONTRADICTED") and red[2] == "#c92a2a"
