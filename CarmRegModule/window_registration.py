@@ -83,7 +83,8 @@ class WindowRegistration:
 
         api = _registration_api()
         chosen = self.registration_panel.parameters()
-        values = {"metric": chosen["metric"], "cache_dir": str(cache_dir()) if chosen["use_cache"] else None}
+        values = {"metric": chosen["metric"], "polarity": chosen.get("polarity", "auto"),
+                  "cache_dir": str(cache_dir()) if chosen["use_cache"] else None}
         values.update(self.parameter_overrides)
         return api.RegistrationParameters(**values)
 

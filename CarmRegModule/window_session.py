@@ -68,6 +68,7 @@ class WindowSession:
         metric = session.parameters.get("metric")
         if metric:
             self.registration_panel.set_metric(metric)
+        self.registration_panel.set_polarity(session.parameters.get("polarity"))
         self.last_result_summary = session.last_result
         if session.last_result:
             try:

@@ -140,6 +140,14 @@ class RegistrationPanel(QtWidgets.QWidget):
                                      "correlation is the most reliable on C-arm images (README)")
         form.addRow("Similarity", self.metric_combo)
         self.metric_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        self.polarity_combo = QtWidgets.QComboBox()
+        for key, text in (("auto", "Find from the image"), ("bone-dark", "Bone dark (fluoroscopy)"),
+                          ("bone-bright", "Bone bright (radiograph)")):
+            self.polarity_combo.addItem(text, key)
+        self.polarity_combo.setToolTip("How the X-ray shows bone. CarmReg finds it from the image against the CT "
+                                       "and says how clearly (Check step); set it only to override")
+        form.addRow("X-ray polarity", self.polarity_combo)
+        self.polarity_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
         self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
         self.cache_check.setChecked(True)
         form.addRow("", self.cache_check)
@@ -194,13 +202,17 @@ class RegistrationPanel(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
         return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
-                "use_cache": self.cache_check.isChecked()}
+                "polarity": self.polarity_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked()}
 
     def set_metric(self, key: str) -> None:
         """Choose the metric by its key (``gc``, ``ncc``, ...)."""
         index = self.metric_combo.findData(key)
         if index >= 0:
             self.metric_combo.setCurrentIndex(index)
+
+    def set_polarity(self, key) -> None:
+        """Choose the X-ray polarity setting (``auto``, ``bone-dark``, ``bone-bright``; anything else: auto)."""
+        self.polarity_combo.setCurrentIndex(max(self.polarity_combo.findData(key if isinstance(key, str) else ""), 0))
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""
@@ -250,6 +262,7 @@ class RegistrationPanel(QtWidgets.QWidget):
                                    if partial else "Run every stage")
         self.cancel_button.setEnabled(running)
         self.metric_combo.setEnabled(not running)
+        self.polarity_combo.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 
     def set_progress(self, stage: str, fraction: float, message: str) -> None:

@@ -189,6 +189,11 @@ class ResultPanel(QtWidgets.QWidget):
         form.addRow("Assigned", self.level_assigned_label)
         form.addRow("Margin", self.level_margin_label)
         form.addRow("Runner-up", self.level_runner_up_label)
+        self.appearance_label = QtWidgets.QLabel("-")
+        self.appearance_label.setWordWrap(True)
+        self.appearance_label.setToolTip("How the X-ray shows bone and how clearly the image said so "
+                                         "(result.json 'appearance'); override it in the Register step")
+        form.addRow("X-ray", self.appearance_label)
         self.hypotheses_table = QtWidgets.QTableWidget(0, 4)
         self.hypotheses_table.setHorizontalHeaderLabels(["Labelling", "Score\n(lower better)", "Similarity",
                                                          "mPDE\n(mm)"])
@@ -295,6 +300,17 @@ class ResultPanel(QtWidgets.QWidget):
         self.banner.setToolTip(reason)
         self.banner.setVisible(True)
 
+    def set_appearance(self, appearance) -> None:
+        """Show ``result.appearance`` (polarity, how clearly, storage, orientation) or '-'."""
+        if appearance is None:
+            self.appearance_label.setText("-")
+            self.appearance_label.setStyleSheet("")
+            return
+        orientation = appearance.orientation.replace("-", " ")
+        self.appearance_label.setText(f"{appearance.note}; stored as {appearance.storage.replace('-', ' ')}; "
+                                      f"matches the CT {orientation}")
+        self.appearance_label.setStyleSheet("" if appearance.trusted else "color: #ffa94d;")
+
     def set_result(self, result, click_names: list[str] | None = None) -> None:
         has = result is not None
         self.set_banner(None)
@@ -310,6 +326,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))
         self.set_level_check(getattr(result, "level_check", None) if has else None, click_names)
+        self.set_appearance(getattr(result, "appearance", None) if has else None)
         if not has:
             self.set_accept_enabled(False, "No result yet")
             self.pose_label.setText("No result yet: run the registration (step 4).")

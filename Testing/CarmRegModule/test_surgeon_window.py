@@ -445,3 +445,25 @@ def test_run_gui_with_a_session_opens_it_with_its_result(window, synthetic_case,
     assert app.run_gui(session=str(path)) == 0
     assert seen["title"].startswith("CarmReg - case.carmreg.json") and seen["restored"]
     assert seen["names"] == window.overlay_view.level_names()
+
+
+def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_is_shown(window):
+    """Register step: 'X-ray polarity' (auto by default) becomes RegistrationParameters.polarity and is kept in a
+    session; the Check step shows what the registration found (result.appearance), amber when not trusted."""
+    from carmreg.logic.image.appearance import decide_polarity
+
+    win = window
+    assert win.registration_parameters().polarity == "auto"
+    win.registration_panel.set_polarity("bone-bright")
+    assert win.registration_parameters().polarity == "bone-bright"
+    assert win.registration_panel.parameters()["polarity"] == "bone-bright"
+    win.registration_panel.set_polarity("nonsense")
+    assert win.registration_parameters().polarity == "auto"
+    found = decide_polarity({"bone-dark": 0.2, "bone-bright": 0.5}, None, "auto", True, "PNG", None)
+    win.result_panel.set_appearance(found)
+    assert "bone-bright, found from the image" in win.result_panel.appearance_label.text()
+    assert win.result_panel.appearance_label.styleSheet() == ""
+    unclear = decide_polarity({"bone-dark": 0.30, "bone-bright": 0.29}, None, "auto", True, "PNG", None)
+    win.result_panel.set_appearance(unclear)
+    assert "barely tells" in win.result_panel.appearance_label.text()
+    assert "#ffa94d" in win.result_panel.appearance_label.styleSheet()
