@@ -20,8 +20,8 @@ import numpy as np
 from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.geometry.camera import POSE_NAMES
+from carmreg.logic.report.composite import MODES
 
-from ..overlay_images import MODES
 from ..qt_common import STATUS_COLORS
 
 MODE_TEXT = {"named": "named clicks: their names were checked against the image",

@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 from qtpy import QtCore, QtGui
 
-from .. import overlay_images
+from carmreg.logic.report import composite as overlay_images
+
 from ..qt_common import CHECK_COLOR, CLICK_COLOR, FITTED_COLOR, STATUS_COLORS
 from .image_canvas import ImageCanvas, MarkerSpec
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import hashlib
 import json
 import os
 import shutil
@@ -34,19 +33,12 @@ import tempfile
 from pathlib import Path
 
 from carmreg.logic.errors import CarmRegError
+from carmreg.logic.io.atomic import file_sha256
 
 MANIFEST = "carmreg-manifest.json"
 _NEW, _OLD = "carmreg-new", "carmreg-old"
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(8 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _pid_alive(pid: int) -> bool:
@@ -190,7 +182,7 @@ class FolderTransaction:
         for path in sorted(self.stage.rglob("*")):
             name = path.relative_to(self.stage).as_posix()
             if path.is_file() and not path.is_symlink() and name != MANIFEST:
-                files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+                files[name] = {"bytes": path.stat().st_size, "sha256": file_sha256(path)}
         return files
 
     def _previous_entries(self) -> set[str]:

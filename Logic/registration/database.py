@@ -33,7 +33,7 @@ from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import RegistrationError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.volume import MuLevel
-from carmreg.logic.io.atomic import atomic_write, atomic_write_json
+from carmreg.logic.io.atomic import atomic_write, atomic_write_json, file_sha256
 from carmreg.logic.io.limits import file_kind
 
 FORMAT_VERSION = 3
@@ -103,15 +103,6 @@ def database_key(digest: str, geometry: CarmGeometry, intrinsics: CarmIntrinsics
 
 def _cache_paths(cache_dir, key: str) -> tuple[Path, Path]:
     return Path(cache_dir) / f"db-{key}.npy", Path(cache_dir) / f"db-{key}.json"
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes, read in 8 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(8 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _load_cached(cache_dir, key: str, shape: tuple) -> np.ndarray | None:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.report.composite import blend, normalise, xray_bone_bright
 
 A4_INCHES = (8.27, 11.69)
 STATUS_COLOURS = {"confident": "#2b8a3e", "proposed": "#b08900", "ambiguous": "#e8590c",
@@ -40,7 +41,6 @@ STATUS_WORDS = {"confident": "LEVELS CONFIRMED BY THE IMAGE", "proposed": "LEVEL
                 "ambiguous": "LEVELS AMBIGUOUS", "contradicted": "LEVEL NAMES CONTRADICTED BY THE IMAGE",
                 None: "LEVEL NAMES NOT CHECKED"}
 FITTED_COLOUR, CHECK_COLOUR, CLICK_COLOUR, WRONG_COLOUR = "#40c057", "#ffd228", "#ff4d4d", "#ff6b6b"
-DRR_TINT = np.array([1.0, 0.62, 0.25], np.float32)  # the window's blend colour (overlay_images.DRR_TINT)
 NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
 
 
@@ -94,17 +94,6 @@ def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tu
 
 # ----------------------------------------------------------------------------------------------- overlay
 
-def _normalise(image: np.ndarray, mask: np.ndarray | None, low_pct: float = 1.0, high_pct: float = 99.5
-               ) -> np.ndarray:
-    """Percentile window (inside the exposed field ``mask``) to 0..1; 0 outside the mask."""
-    img = np.asarray(image, np.float32)
-    inside = img[mask] if mask is not None and mask.any() else img.ravel()
-    sample = inside[:: max(1, inside.size // 250_000)]
-    lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
-    out = np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
-    return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
-
-
 def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, bone_dark: bool,
                      alpha: float = 0.5, mask: np.ndarray | None = None) -> np.ndarray:
     """(rows, cols, 3) uint8: the window's default overlay - the X-ray bone bright in grey, the DRR added in
@@ -113,12 +102,9 @@ def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | No
 
     if mask is None or np.shape(mask) != np.shape(xray_pixels):
         mask = field_mask(xray_pixels)
-    xray01 = _normalise(xray_pixels, mask)
-    xray01 = np.where(mask, 1.0 - xray01 if bone_dark else xray01, 0.0)
-    drr01 = _normalise(drr_line_integral, mask) if drr_line_integral is not None else np.zeros_like(xray01)
-    grey = (1.0 - alpha) * xray01[..., None] * np.ones(3, np.float32)
-    rgb = grey + alpha * drr01[..., None] * DRR_TINT[None, None, :] / DRR_TINT.max()
-    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    xray01 = xray_bone_bright(xray_pixels, bone_dark, mask)
+    drr01 = normalise(drr_line_integral, mask) if drr_line_integral is not None else np.zeros_like(xray01)
+    return blend(xray01, drr01, alpha)
 
 
 def _draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool) -> None:
