@@ -73,7 +73,7 @@ def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True)
         from carmreg.logic.registration.level_confidence import ConfidenceRule
 
         reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
-                  f"is better; {ConfidenceRule().margin:.2f} separates confident from ambiguous)"
+                  f"is better; confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule)"
     colour = STATUS_COLOURS.get(status, STATUS_COLOURS[None])
     if not ok and status not in ("contradicted",):
         colour = STATUS_COLOURS["contradicted"]
@@ -193,10 +193,13 @@ def _inputs_block(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def _labellings_block(check: dict | None) -> str:
-    """How the levels were named: the mode and every labelling registered with its score, best first."""
+def _labellings_block(check: dict | None, appearance=None) -> str:
+    """How the levels were named: the X-ray's appearance as found, the mode and every labelling registered with
+    its score, best first."""
+    seen_as = (f"X-ray: {appearance.note}; stored as {appearance.storage.replace('-', ' ')}; matches the CT "
+               f"{appearance.orientation.replace('-', ' ')}. ") if appearance is not None else ""
     if not check:
-        return "The level names were not checked against the image (level check off)."
+        return _wrap(seen_as + "The level names were not checked against the image (level check off).", 110)
     mode = {"named": "named clicks, checked against the names shifted up and down",
             "partly_named": "partly named clicks, the others named from the image",
             "unnamed": "unnamed clicks, named from the image",
@@ -210,7 +213,7 @@ def _labellings_block(check: dict | None) -> str:
             seen.add(key)
             parts.append(f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(key) > 1 else key[0]} "
                          f"{float(h['score']):.3f}")
-    text = f"Mode: {mode}."
+    text = f"{seen_as}Mode: {mode}."
     if parts:
         text += " Labellings registered, score (lower is better): " + ", ".join(parts[:8]) + "."
     return _wrap(text, 110)
@@ -291,7 +294,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
              va="top")
     fig.text(0.05, 0.267, _inputs_block(doc), **mono)
     fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
-    fig.text(0.05, 0.137, _labellings_block(check), fontsize=7.2, va="top")
+    fig.text(0.05, 0.137, _labellings_block(check, getattr(result, "appearance", None)), fontsize=7.2, va="top")
     other = [w for w in doc["warnings"] if doc["ok"]]
     if other:
         fig.text(0.05, 0.095, _wrap("Warnings: " + "; ".join(other), 120), fontsize=7, color="#e8590c", va="top")
