@@ -91,6 +91,12 @@ class Appearance:
         """The polarity is clear and the image matches the CT best as stored: a level answer may be confident."""
         return self.clear and self.orientation == "as-stored"
 
+    def set_storage(self, scores: dict) -> None:
+        """Record ``storage_scores`` and, for a bone-dark image, use the better-agreeing conversion (docstring)."""
+        self.scores["storage"] = dict(scores)
+        if self.bone_dark:
+            self.storage = max(scores, key=scores.get)
+
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""
         self.orientation_scores = dict(scores)
@@ -167,8 +173,9 @@ def image_polarity(scores: dict) -> tuple[str, float]:
 
 
 def decide_polarity(database: dict, refined: dict | None, requested: str, header_bone_dark: bool,
-                    header_source: str, storage: dict | None) -> Appearance:
-    """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose."""
+                    header_source: str, storage: dict | None = None) -> Appearance:
+    """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
+    the ``storage_scores`` when known (else see ``Appearance.set_storage``)."""
     evidence, threshold, by = (refined, CLEAR_REFINED_GC, "image (refined)") if refined is not None \
         else (database, CLEAR_POLARITY_GC, "image")
     seen, gap = image_polarity(evidence)
@@ -187,14 +194,13 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         polarity = seen
         note = (f"{seen}, but the image barely tells (GC gap {gap:.3f} < {threshold}); the file says {header}: "
                 "set the polarity by hand if the overlay looks inverted")
-    if storage is not None and polarity == "bone-dark":
-        chosen_storage = max(storage, key=storage.get)
-    else:
-        chosen_storage = "log-display" if polarity == "bone-bright" else "linear-intensity"
     scores = {"database": {k: database[k] for k in POLARITIES},
-              "refined": None if refined is None else {k: refined[k] for k in POLARITIES}, "storage": storage}
-    return Appearance(polarity, chosen_storage, by, bool(clear), gap, threshold, scores, header, header_source,
-                      seen, note)
+              "refined": None if refined is None else {k: refined[k] for k in POLARITIES}, "storage": None}
+    appearance = Appearance(polarity, "log-display" if polarity == "bone-bright" else "linear-intensity", by,
+                            bool(clear), gap, threshold, scores, header, header_source, seen, note)
+    if storage is not None:
+        appearance.set_storage(storage)
+    return appearance
 
 
 def fixed_appearance(polarity: str, header_bone_dark: bool, header_source: str) -> Appearance:

@@ -292,10 +292,10 @@ class CarmRegLogic:
         if p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
             refined = self._refined_polarity_scores(state, scores)
-        storage = storage_scores(xray.pixels, state.mask, drrs, state.coarse_factor)
-        state.appearance = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
-                                           xray.sources.get("bone_dark", ""), storage)
-        a = state.appearance
+        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
+                                               xray.sources.get("bone_dark", ""))
+        if a.bone_dark:  # a bone-bright image is attenuation-like already: no storage to choose
+            a.set_storage(storage_scores(xray.pixels, state.mask, drrs, state.coarse_factor))
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
