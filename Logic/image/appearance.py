@@ -91,9 +91,11 @@ class Appearance:
         """The polarity is clear and the image matches the CT best as stored: a level answer may be confident."""
         return self.clear and self.orientation == "as-stored"
 
-    def set_storage(self, scores: dict) -> None:
-        """Record ``storage_scores`` and, for a bone-dark image, use the better-agreeing conversion (docstring)."""
-        self.scores["storage"] = dict(scores)
+    def set_storage(self, gc_by_storage: dict) -> None:
+        """Record the best GC of each conversion (``storage_gc``) and, for a bone-dark image, use the
+        better-agreeing one (module docstring)."""
+        scores = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
+        self.scores["storage"] = scores
         if self.bone_dark:
             self.storage = max(scores, key=scores.get)
 
@@ -135,15 +137,13 @@ def polarity_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, fact
             "best_index": {"bone-dark": int(np.argmax(-g)), "bone-bright": int(np.argmax(g))}}
 
 
-def storage_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
-    """Best GC over the database of a bone-dark image converted as linear intensity (-log) or as a log display."""
+def storage_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
+    """GC of a bone-dark image, converted as linear intensity (-log) or as a log display, with every database DRR:
+    {storage: (n,) scores}; the chosen conversion's scores are the spatial stage's GC map."""
     shape = drrs.shape[1:]
     coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
-    out = {}
-    for storage in ("linear-intensity", "log-display"):
-        line = attenuation(pixels, mask, True, storage)
-        out[storage] = float(np.max(similarity("gc", _coarse(line, factor, shape), drrs, coarse_mask)))
-    return out
+    return {storage: similarity("gc", _coarse(attenuation(pixels, mask, True, storage), factor, shape), drrs,
+                                coarse_mask) for storage in ("linear-intensity", "log-display")}
 
 
 def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarray, factor: int,
@@ -175,7 +175,7 @@ def image_polarity(scores: dict) -> tuple[str, float]:
 def decide_polarity(database: dict, refined: dict | None, requested: str, header_bone_dark: bool,
                     header_source: str, storage: dict | None = None) -> Appearance:
     """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
-    the ``storage_scores`` when known (else see ``Appearance.set_storage``)."""
+    the ``storage_gc`` when known (else see ``Appearance.set_storage``)."""
     evidence, threshold, by = (refined, CLEAR_REFINED_GC, "image (refined)") if refined is not None \
         else (database, CLEAR_POLARITY_GC, "image")
     seen, gap = image_polarity(evidence)

@@ -49,7 +49,7 @@ from carmreg.logic.image.appearance import (
     image_polarity,
     orientation_scores,
     polarity_scores,
-    storage_scores,
+    storage_gc,
 )
 from carmreg.logic.image.field import field_mask
 from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor
@@ -135,6 +135,7 @@ class RegistrationState:
     refined_pose: np.ndarray | None = None
     identification: LevelIdentification | None = None
     appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
+    known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
@@ -294,8 +295,11 @@ class CarmRegLogic:
             refined = self._refined_polarity_scores(state, scores)
         state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
                                                xray.sources.get("bone_dark", ""))
+        state.known_gc = None
         if a.bone_dark:  # a bone-bright image is attenuation-like already: no storage to choose
-            a.set_storage(storage_scores(xray.pixels, state.mask, drrs, state.coarse_factor))
+            gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
+            a.set_storage(gc_by_storage)
+            state.known_gc = gc_by_storage[a.storage]  # the spatial stage's GC map, computed here already
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
@@ -329,7 +333,8 @@ class CarmRegLogic:
         rows, cols = state.database.drrs.shape[2:]
         p = state.parameters
         state.spatial = spatial_search(state.database, xc[:rows, :cols], mc[:rows, :cols], p.metric,
-                                       METRICS if p.all_metrics else (p.metric,))
+                                       METRICS if p.all_metrics else (p.metric,),
+                                       known=None if state.known_gc is None else {"gc": state.known_gc})
         per_metric = {}
         for name, (ty, tz) in state.spatial.best_by_metric.items():
             pose = np.array([state.database.tx_mm, ty, tz, 0, 0, 0])

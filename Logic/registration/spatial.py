@@ -30,8 +30,9 @@ class SpatialResult:
 
 
 def spatial_search(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarray, metric: str = "gc",
-                   metrics: tuple[str, ...] = METRICS) -> SpatialResult:
-    """Score all DRRs with ``metric`` and each of ``metrics``; the best (ty, tz) of ``metric`` and every map."""
+                   metrics: tuple[str, ...] = METRICS, known: dict | None = None) -> SpatialResult:
+    """Score all DRRs with ``metric`` and each of ``metrics``; the best (ty, tz) of ``metric`` and every map.
+    ``known``: {metric: (n,) scores} already computed for this very X-ray (not computed again)."""
     start = time.perf_counter()
     ny, nz, rows, cols = db.drrs.shape
     if xray_coarse.shape != (rows, cols):
@@ -40,7 +41,8 @@ def spatial_search(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.nda
     result = SpatialResult(metric, 0.0, 0.0)
     for name in dict.fromkeys((metric, *metrics)):
         t0 = time.perf_counter()
-        scores = similarity(name, xray_coarse, flat, mask_coarse).reshape(ny, nz)
+        scores = (known[name] if known and name in known else similarity(name, xray_coarse, flat, mask_coarse)
+                  ).reshape(ny, nz)
         result.seconds_by_metric[name] = time.perf_counter() - t0
         iy, iz = np.unravel_index(int(np.argmax(scores)), scores.shape)
         result.maps[name] = scores
