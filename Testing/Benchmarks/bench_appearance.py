@@ -189,7 +189,8 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
     lc = result.get("level_check") or {}
     row.update(ok=result.get("ok"), status=lc.get("status"), margin=lc.get("margin"),
                assigned=lc.get("assigned_labels"), winner=lc.get("winner_labels"),
-               warnings=result.get("warnings", [])[:4], appearance=result.get("appearance"))
+               warnings=result.get("warnings", [])[:4], appearance=result.get("appearance"),
+               checks=lc.get("checks"), reasons=lc.get("reasons"))
     stages = {st.get("name"): st for st in result.get("stages", [])}
     row["stage_seconds"] = {k: st.get("seconds") for k, st in stages.items()}
     row["db_from_cache"] = stages.get("database", {}).get("from_cache")
