@@ -47,3 +47,11 @@ def quote(value, limit: int = 60) -> str:
     if isinstance(value, str | list | dict) and len(value) > limit:
         text += f" ({len(value)} {'characters' if isinstance(value, str) else 'items'})"
     return text
+
+
+
+def describe(exc: BaseException, limit: int = 100) -> str:
+    """'Kind: message' of a library exception on one line (whitespace collapsed) and at most ``limit``
+    characters of message, for embedding in a one-line CarmRegError."""
+    text = " ".join(str(exc).split())
+    return f"{exc.__class__.__name__}: {text[:limit]}"

@@ -26,10 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from carmreg.logic.errors import InputFileError, LandmarkError, quote
+from carmreg.logic.errors import InputFileError, LandmarkError, describe, quote
 from carmreg.logic.io.atomic import atomic_write_json
 from carmreg.logic.io.limits import regular_file
-from carmreg.logic.io.xray import describe
 
 LEVEL_NAMES = ([f"C{i}" for i in range(1, 8)] + [f"T{i}" for i in range(1, 14)]
                + [f"L{i}" for i in range(1, 7)] + ["S1"])

