@@ -21,8 +21,9 @@ used inside Slicer.
 
 What lives where
 ----------------
-The functions at module level convert between MRML nodes and CarmReg's objects and need only VTK and numpy, so
-the tests run them against ``slicer-core``'s real MRML nodes outside Slicer. The classes need Slicer's
+The conversions between MRML nodes and CarmReg's objects live in ``carmreg.slicer_nodes`` (``slicer_nodes()``
+imports it): VTK and numpy only, so the tests run them against ``slicer-core``'s real MRML nodes outside Slicer.
+This file keeps the import set-up, the Python dependencies and the Slicer classes. The classes need Slicer's
 application (``slicer.ScriptedLoadableModule``, qt, ctk): imported elsewhere, their bases are ``_NeedsSlicer``,
 which refuses to be instantiated.
 
@@ -39,17 +40,6 @@ import sys
 MODULE_DIR = os.path.dirname(os.path.abspath(__file__))
 PACKAGE_DIRS = {"carmreg": "CarmRegModule", "carmreg.logic": "Logic", "carmreg.resources": "Resources"}
 """pyproject.toml's [tool.setuptools.package-dir]: the import root over the design's top-level folders."""
-LPS_TO_RAS_4 = ((-1.0, 0, 0, 0), (0, -1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
-
-# Parameter node: node references (role -> MRML class) and parameters (name -> default, as text)
-NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiducialNode",
-              "Xray": "vtkMRMLScalarVolumeNode", "XrayPoints": "vtkMRMLMarkupsFiducialNode",
-              "CarmTransform": "vtkMRMLLinearTransformNode", "DRR": "vtkMRMLScalarVolumeNode",
-              "Overlay": "vtkMRMLVectorVolumeNode", "ProjectedLevels": "vtkMRMLMarkupsFiducialNode"}
-OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
-DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "Metric": "gc", "CheckLevels": "true"}
-"""0 = take the value from the X-ray file (DICOM tags) or CarmReg's default."""
-METRICS = ("gc", "go", "ncc", "gi", "mi", "psnr", "ssim")
 FORBIDDEN_IN_SLICER = ("vtk", "pyside6", "pyside6-essentials", "pyqt5", "pyqt6", "qtpy")
 
 try:
@@ -103,6 +93,14 @@ def import_carmreg(root=MODULE_DIR):
     return sys.modules["carmreg"]
 
 
+def slicer_nodes():
+    """``carmreg.slicer_nodes`` (MRML nodes <-> CarmReg's objects), with ``carmreg`` imported from beside this file."""
+    import_carmreg()
+    import carmreg.slicer_nodes
+
+    return carmreg.slicer_nodes
+
+
 def read_requirements(path):
     """Requirement lines of a requirements.txt (no comments, blanks or pip options)."""
     with open(path, encoding="utf-8") as f:
@@ -153,261 +151,6 @@ def ensure_python_dependencies(requirements_path=None):
         slicer.util.pip_install(" ".join(f'"{r}"' for r in missing))
 
 
-# ------------------------------------------------------------------------------- MRML <-> CarmReg (VTK, numpy)
-
-def _np():
-    import numpy as np
-
-    return np
-
-
-def matrix_to_numpy(vtk_matrix):
-    np = _np()
-    return np.array([[vtk_matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
-
-
-def numpy_to_matrix(array):
-    import vtk
-
-    m = vtk.vtkMatrix4x4()
-    for i in range(4):
-        for j in range(4):
-            m.SetElement(i, j, float(array[i][j]))
-    return m
-
-
-def ijk_to_ras(volume_node):
-    """4x4 IJK -> RAS of a volume node (its own geometry; a parent transform is not applied)."""
-    import vtk
-
-    m = vtk.vtkMatrix4x4()
-    volume_node.GetIJKToRASMatrix(m)
-    return matrix_to_numpy(m)
-
-
-def voxels_kji(volume_node):
-    """A copy of the volume's voxels indexed [k, j, i] (numpy order of VTK image data)."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-
-    image = volume_node.GetImageData()
-    if image is None:
-        raise ValueError(f"volume '{volume_node.GetName()}' has no image data")
-    nx, ny, nz = image.GetDimensions()
-    scalars = vtk_to_numpy(image.GetPointData().GetScalars())
-    components = image.GetNumberOfScalarComponents()
-    shape = (nz, ny, nx) if components == 1 else (nz, ny, nx, components)
-    return scalars.reshape(shape).copy()
-
-
-def ct_from_node(volume_node):
-    """The CT volume node as CarmReg's ``Volume`` (HU [i, j, k], ijk_to_lps = diag(-1, -1, 1, 1) IJKToRAS)."""
-    np = _np()
-    from carmreg.logic.geometry.volume import Volume
-
-    lps = np.asarray(LPS_TO_RAS_4) @ ijk_to_ras(volume_node)
-    return Volume(np.ascontiguousarray(voxels_kji(volume_node).transpose(2, 1, 0)), lps,
-                  f"Slicer volume '{volume_node.GetName()}'")
-
-
-def _control_points_ras(markups_node):
-    np = _np()
-    n = markups_node.GetNumberOfControlPoints()
-    labels = [markups_node.GetNthControlPointLabel(i) for i in range(n)]
-    return labels, np.array([markups_node.GetNthControlPointPositionWorld(i) for i in range(n)]).reshape(-1, 3)
-
-
-def ct_points_from_node(markups_node):
-    """The CT centroids (labels = level names) as ``Landmarks3D`` in LPS mm."""
-    np = _np()
-    from carmreg.logic.io.landmarks import Landmarks3D
-
-    labels, ras = _control_points_ras(markups_node)
-    return Landmarks3D(labels, ras * [-1.0, -1.0, 1.0], f"Slicer markups '{markups_node.GetName()}'") \
-        if len(labels) else Landmarks3D([], np.zeros((0, 3)), markups_node.GetName())
-
-
-def xray_points_from_node(markups_node, xray_node):
-    """Clicks on the X-ray volume as ``Landmarks2D``: (u, v) = (i, j) of each point's RAS in the X-ray's IJK.
-
-    An empty label is an unnamed click."""
-    np = _np()
-    from carmreg.logic.io.landmarks import Landmarks2D
-
-    labels, ras = _control_points_ras(markups_node)
-    ras_to_ijk = np.linalg.inv(ijk_to_ras(xray_node))
-    ijk = (ras_to_ijk @ np.c_[ras, np.ones(len(ras))].T).T[:, :3] if len(ras) else np.zeros((0, 3))
-    return Landmarks2D([lb or None for lb in labels], ijk[:, :2], f"Slicer markups '{markups_node.GetName()}'")
-
-
-def _storage_file(node):
-    storage = node.GetStorageNode()
-    path = storage.GetFileName() if storage is not None else None
-    return path if path and os.path.isfile(path) else None
-
-
-def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0):
-    """The X-ray as ``XrayImage``. Loaded from a file: ``load_xray`` on it (DICOM geometry tags), with the
-    non-zero values given overriding; else its pixels with the given geometry (pixel spacing default: the
-    volume's spacing)."""
-    np = _np()
-    from carmreg.logic.geometry.camera import CarmIntrinsics
-    from carmreg.logic.io.xray import XrayImage, load_xray
-
-    voxels = voxels_kji(xray_node)
-    if voxels.ndim != 3 or voxels.shape[0] != 1:
-        raise ValueError(f"X-ray '{xray_node.GetName()}' must be a single 2D image (one slice, one component), "
-                         f"got voxels {voxels.shape}")
-    path = _storage_file(xray_node)
-    overrides = {"sdd_mm": sdd_mm or None, "pixel_spacing_mm": pixel_spacing_mm or None, "sod_mm": sod_mm or None}
-    if path is not None:
-        xray = load_xray(path, **overrides)
-        if xray.pixels.shape == voxels.shape[1:]:
-            return xray
-    spacing = pixel_spacing_mm or float(xray_node.GetSpacing()[0])
-    rows, cols = voxels.shape[1:]
-    intrinsics = CarmIntrinsics(float(sdd_mm or 1000.0), (spacing, spacing), (cols, rows), None,
-                                {"sdd_mm": "manual" if sdd_mm else "default"})
-    return XrayImage(np.asarray(voxels[0], np.float32), intrinsics, sod_mm or None, True,
-                     f"Slicer volume '{xray_node.GetName()}'")
-
-
-def set_transform(transform_node, result):
-    """The C-arm transform: to-parent = camera frame (x, y flipped, as Slicer reads LPS files) -> CT RAS,
-    i.e. F inv(lps_to_camera) F with F = diag(-1, -1, 1, 1) - what Slicer makes of ``carm.tfm``."""
-    np = _np()
-    rotation, t = result.geometry.extrinsics(result.pose)
-    lps_to_camera = np.eye(4)
-    lps_to_camera[:3, :3], lps_to_camera[:3, 3] = rotation, t
-    f = np.asarray(LPS_TO_RAS_4)
-    transform_node.SetMatrixTransformToParent(numpy_to_matrix(f @ np.linalg.inv(lps_to_camera) @ f))
-
-
-def set_image_on_xray_grid(volume_node, image, xray_node):
-    """Put ``image[row, column]`` (scalar, or (rows, cols, 3) RGB uint8) into a volume node on the X-ray's grid
-    (voxel (u, v, 0) = pixel (u, v) of the X-ray)."""
-    import vtk
-    from vtkmodules.util.numpy_support import numpy_to_vtk
-
-    np = _np()
-    array = np.ascontiguousarray(image)
-    rows, cols = array.shape[:2]
-    components = 1 if array.ndim == 2 else array.shape[2]
-    vtk_image = vtk.vtkImageData()
-    vtk_image.SetDimensions(cols, rows, 1)
-    vtk_image.GetPointData().SetScalars(numpy_to_vtk(array.reshape(rows * cols, components) if components > 1
-                                                     else array.ravel(), deep=True))
-    volume_node.SetAndObserveImageData(vtk_image)
-    volume_node.SetIJKToRASMatrix(numpy_to_matrix(ijk_to_ras(xray_node)))
-    if volume_node.GetDisplayNode() is None:
-        volume_node.CreateDefaultDisplayNodes()
-
-
-def set_projected_levels(markups_node, result, xray_node):
-    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0))."""
-    np = _np()
-    markups_node.RemoveAllControlPoints()
-    matrix = ijk_to_ras(xray_node)
-    for level in result.levels:
-        u, v = level["uv_px"]
-        ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
-        index = markups_node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]), level["label"])
-        markups_node.SetNthControlPointDescription(
-            index, ("fitted" if level["fitted"] else "not fitted")
-            + (f", PDE {level['pde_mm']:.2f} mm" if level.get("pde_mm") is not None else ""))
-    markups_node.SetLocked(True)
-
-
-def overlay_rgb(result, xray):
-    """The overlay image (X-ray, DRR bone in cyan, named levels, level banner) as (rows, cols, 3) uint8."""
-    np = _np()
-    from carmreg.logic.report.result_files import overlay_image
-
-    clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
-    image = overlay_image(xray.pixels, result.drr_line_integral, result.levels, clicked,
-                          mask=result.field_mask, level_check=result.level_check)
-    return np.asarray(image.convert("RGB"), np.uint8)
-
-
-def set_default_parameters(parameter_node):
-    """Fill the parameters the node lacks with DEFAULT_PARAMETERS."""
-    for name, value in DEFAULT_PARAMETERS.items():
-        if not parameter_node.GetParameter(name):
-            parameter_node.SetParameter(name, value)
-
-
-def parameters_from_node(parameter_node):
-    """The registration settings of a parameter node: (sdd_mm, pixel_spacing_mm, sod_mm, metric, check_levels)."""
-    def number(name):
-        text = parameter_node.GetParameter(name) or "0"
-        try:
-            return max(0.0, float(text))
-        except ValueError:
-            raise ValueError(f"CarmReg parameter {name} = {text!r} is not a number; set it in the module panel") \
-                from None
-
-    metric = parameter_node.GetParameter("Metric") or "gc"
-    if metric not in METRICS:
-        raise ValueError(f"CarmReg parameter Metric = {metric!r}; choose one of {', '.join(METRICS)}")
-    return (number("SddMm"), number("PixelSpacingMm"), number("SodMm"), metric,
-            (parameter_node.GetParameter("CheckLevels") or "true") == "true")
-
-
-def output_node(scene, parameter_node, role):
-    """The output node the parameter node references for ``role``, created (and referenced) when absent."""
-    node = parameter_node.GetNodeReference(role)
-    if node is None:
-        node = scene.AddNewNodeByClass(NODE_ROLES[role], OUTPUT_NAMES[role])
-        parameter_node.SetNodeReferenceID(role, node.GetID())
-    return node
-
-
-def register_nodes(parameter_node, logic=None, cache_dir=None):
-    """Register the parameter node's CT, CT points, X-ray and X-ray clicks with ``logic`` (a
-    ``carmreg.logic`` CarmRegLogic: progress, cancel); returns (result, ct, ct_landmarks, xray). Raises
-    CarmReg's errors (one clear line) on bad input."""
-    import_carmreg()
-    from carmreg.logic.registration import pipeline
-
-    nodes = {role: parameter_node.GetNodeReference(role) for role in ("CT", "CTPoints", "Xray", "XrayPoints")}
-    missing = [role for role in ("CT", "CTPoints", "Xray") if nodes[role] is None]
-    if missing:
-        raise ValueError(f"CarmReg: select the {', '.join(missing)} input(s) first")
-    sdd_mm, spacing_mm, sod_mm, metric, check_levels = parameters_from_node(parameter_node)
-    ct = ct_from_node(nodes["CT"])
-    ct_landmarks = ct_points_from_node(nodes["CTPoints"])
-    xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm)
-    clicks = xray_points_from_node(nodes["XrayPoints"], nodes["Xray"]) if nodes["XrayPoints"] else None
-    params = pipeline.RegistrationParameters(metric=metric, level_check=check_levels, cache_dir=cache_dir)
-    result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)
-    return result, ct, ct_landmarks, xray
-
-
-def show_result(scene, parameter_node, result, xray):
-    """Write a result into the output nodes (created when absent): C-arm transform, DRR and overlay volumes
-    on the X-ray's grid, projected named levels."""
-    xray_node = parameter_node.GetNodeReference("Xray")
-    set_transform(output_node(scene, parameter_node, "CarmTransform"), result)
-    if result.drr_line_integral is not None:
-        set_image_on_xray_grid(output_node(scene, parameter_node, "DRR"), result.drr_line_integral, xray_node)
-        set_image_on_xray_grid(output_node(scene, parameter_node, "Overlay"), overlay_rgb(result, xray), xray_node)
-    set_projected_levels(output_node(scene, parameter_node, "ProjectedLevels"), result, xray_node)
-
-
-def result_summary(result):
-    """A few lines for the panel: status, the level answer, mPDE per stage."""
-    from carmreg.logic.report.result_files import level_banner
-
-    lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.warnings)]
-    banner = level_banner(result.level_check)
-    if banner:
-        lines.append(banner[0])
-    lines += [f"{s.name}: mPDE {s.mpde_mm:.2f} mm, {s.seconds:.1f} s" for s in result.stages
-              if s.mpde_mm is not None]
-    fitted = [f"{lv['label']} {lv['pde_mm']:.2f} mm" for lv in result.levels if lv.get("pde_mm") is not None]
-    if fitted:
-        lines.append("PDE per clicked level: " + ", ".join(fitted))
-    return "\n".join(lines)
-
 
 # ------------------------------------------------------------------------------------------ the Slicer module
 
@@ -450,7 +193,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         import slicer
 
         selector = slicer.qMRMLNodeComboBox()
-        selector.nodeTypes = [NODE_ROLES[role]]
+        selector.nodeTypes = [slicer_nodes().NODE_ROLES[role]]
         selector.noneEnabled, selector.addEnabled, selector.removeEnabled = none_enabled, add_enabled, False
         selector.renameEnabled = add_enabled
         selector.setMRMLScene(slicer.mrmlScene)
@@ -494,7 +237,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.sod = self._spin_box(form, "Source to isocentre:", " mm", 3000.0, "0 = from the DICOM file or 0.6 SDD")
         form = sections["register"]
         ui.metric = qt.QComboBox()
-        ui.metric.addItems(list(METRICS))
+        ui.metric.addItems(list(slicer_nodes().METRICS))
         ui.metric.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("Similarity metric:", ui.metric)
         ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
@@ -530,7 +273,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self._parameterNode.RemoveObserver(self._observer)
         self._parameterNode, self._observer = node, None
         if node is not None:
-            set_default_parameters(node)
+            slicer_nodes().set_default_parameters(node)
             self._observer = node.AddObserver(vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
         self.updateGUIFromParameterNode()
 
@@ -607,7 +350,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
 
             self.logic.progress = progress
             result = self.logic.process(self._parameterNode)
-            self.ui.summary.text = result_summary(result)
+            self.ui.summary.text = slicer_nodes().result_summary(result)
             slicer.util.setSliceViewerLayers(background=self._parameterNode.GetNodeReference("Xray"),
                                              foreground=self._parameterNode.GetNodeReference("DRR"),
                                              foregroundOpacity=0.5, fit=True)
@@ -640,7 +383,7 @@ class CarmRegLogic(ScriptedLoadableModuleLogic):
 
     def getParameterNode(self):
         node = ScriptedLoadableModuleLogic.getParameterNode(self)
-        set_default_parameters(node)
+        slicer_nodes().set_default_parameters(node)
         return node
 
     def loadSampleCase(self, parameterNode=None):
@@ -665,14 +408,14 @@ class CarmRegLogic(ScriptedLoadableModuleLogic):
     @staticmethod
     def _clicks_on_volume(path, xray_node):
         """X-ray clicks of a CarmReg .mrk.json placed on the X-ray volume (RAS of voxel (u, v, 0))."""
+        import numpy as np
         import slicer
 
-        np = _np()
         from carmreg.logic.io.landmarks import read_landmarks_2d
 
         clicks = read_landmarks_2d(path)
         node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "X-ray clicks")
-        matrix = ijk_to_ras(xray_node)
+        matrix = slicer_nodes().ijk_to_ras(xray_node)
         for label, (u, v) in zip(clicks.labels, clicks.uv_px, strict=True):
             ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
             node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]), label or "")
@@ -689,10 +432,10 @@ class CarmRegLogic(ScriptedLoadableModuleLogic):
 
         self._pipeline = pipeline.CarmRegLogic(progress=self.progress)
         try:
-            self.last = register_nodes(parameterNode, self._pipeline)
+            self.last = slicer_nodes().register_nodes(parameterNode, self._pipeline)
         finally:
             self._pipeline = None
-        show_result(slicer.mrmlScene, parameterNode, self.last[0], self.last[3])
+        slicer_nodes().show_result(slicer.mrmlScene, parameterNode, self.last[0], self.last[3])
         return self.last[0]
 
     def saveResult(self, folder):
@@ -728,7 +471,7 @@ class CarmRegTest(ScriptedLoadableModuleTest):
         pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]
         self.assertGreaterEqual(len(pdes), 3)
         self.assertLess(max(pdes), 5.0)
-        for role in OUTPUT_NAMES:
+        for role in slicer_nodes().OUTPUT_NAMES:
             self.assertIsNotNone(parameterNode.GetNodeReference(role), role)
         self.assertEqual(parameterNode.GetNodeReference("ProjectedLevels").GetNumberOfControlPoints(),
                          len(result.levels))

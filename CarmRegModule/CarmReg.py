@@ -4,7 +4,7 @@
 
 - ``CarmReg``: the module's description (title, category, help, acknowledgement);
 - ``CarmRegWidget``: the desktop window (``main_window``); it calls the logic and turns its errors into dialogs;
-- ``CarmRegLogic``: the headless registration (``Logic.pipeline``), usable without Qt;
+- ``CarmRegLogic``: the headless registration (``carmreg.logic.registration.pipeline``), usable without Qt;
 - ``CarmRegTest``: a self-test that drives the logic on the embedded sample case.
 """
 

@@ -370,13 +370,13 @@ def cmd_drr(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from carmreg.logic.simulation import simulator as simulate
+    from carmreg.cli_simulate import run_cli
 
     if args.size_px is not None and not 64 <= args.size_px <= 4096:
         raise CarmRegError(f"--size-px {args.size_px} must be between 64 and 4096 (detector columns = rows)")
     _check_out_dir(args.out)
 
-    return simulate.run_cli(args)
+    return run_cli(args)
 
 
 def _check_window_inputs(args) -> None:

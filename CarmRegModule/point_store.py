@@ -209,9 +209,9 @@ class PointStore(QtCore.QObject):
         if self.dim == 3:
             named = [p for p in pts if p.label]
             return Landmarks3D([p.label for p in named], np.array([p.position for p in named]).reshape(-1, 3),
-                               source=f"{self.name} (GUI)")
+                               source=f"{self.name} points in the window")
         return Landmarks2D([p.label for p in pts], np.array([p.position for p in pts]).reshape(-1, 2),
-                           source=f"{self.name} (GUI)")
+                           source=f"{self.name} points in the window")
 
     def to_records(self) -> list[dict]:
         key = "position_lps_mm" if self.dim == 3 else "uv_px"

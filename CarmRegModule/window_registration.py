@@ -18,6 +18,8 @@ from pathlib import Path
 
 from carmreg.logic.errors import CancelledError, CarmRegError, GeometryError, InputFileError, RegistrationError
 from carmreg.logic.io import session as session_io
+from carmreg.logic.registration.preflight import MIN_CLICKS, click_mode
+from carmreg.logic.similarity.metrics import METRICS
 
 from .qt_common import process_events, report_errors
 from .worker import RegistrationWorker
@@ -26,7 +28,7 @@ LOG = logging.getLogger("carmreg.gui")
 
 
 def _registration_api():
-    """The pipeline's names, imported late so the GUI starts even if the logic has an import problem."""
+    """The pipeline, imported on first use: it pulls in cma and numba, which the window does not need to start."""
     from carmreg.logic.registration import pipeline
     return pipeline
 
@@ -36,17 +38,10 @@ class WindowRegistration:
 
     # =========================================================================================== registration
     def _stages(self) -> tuple[str, ...]:
-        try:
-            return tuple(_registration_api().STAGES)
-        except Exception:  # noqa: BLE001 - the panel still shows; running will report the problem
-            return ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
+        return tuple(_registration_api().STAGES)
 
     def _metrics(self) -> tuple[str, ...]:
-        try:
-            from carmreg.logic.similarity.metrics import METRICS
-            return tuple(METRICS)
-        except Exception:  # noqa: BLE001
-            return ("gc",)
+        return tuple(METRICS)
 
     def registration_inputs(self):
         """(ct, ct_landmarks, xray, xray_landmarks) or a CarmRegError saying what is missing."""
@@ -61,22 +56,14 @@ class WindowRegistration:
         return self.ct_volume, self.ct_store.to_landmarks(), self.xray, self.xray_store.to_landmarks()
 
     def min_xray_clicks(self) -> int:
-        """Fewest X-ray clicks the logic registers with (``registration.pipeline.MIN_CLICKS``); zero clicks is
+        """Fewest X-ray clicks the logic registers with (``registration.preflight.MIN_CLICKS``); zero clicks is
         allowed too (image only)."""
-        try:
-            return int(_registration_api().MIN_CLICKS)
-        except Exception:  # noqa: BLE001 - the logic failed to import: running will report it
-            return 3
+        return MIN_CLICKS
 
     def xray_click_mode(self) -> str:
-        """Level identification the X-ray clicks ask for: ``named`` (every click named), ``partly_named``,
-        ``unnamed`` (no click named) or ``image_only`` (no clicks)."""
-        n, unnamed = len(self.xray_store), self.xray_store.unnamed_count()
-        if n == 0:
-            return "image_only"
-        if unnamed == 0:
-            return "named"
-        return "unnamed" if unnamed == n else "partly_named"
+        """Level identification the X-ray clicks ask for (``registration.preflight.click_mode``): ``named``,
+        ``partly_named``, ``unnamed`` or ``image_only``."""
+        return click_mode(self.xray_store.to_landmarks())
 
     def registration_parameters(self):
         from carmreg.logic.resources import cache_dir

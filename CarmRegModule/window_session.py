@@ -1,4 +1,4 @@
-"""Session handling of the window: save/open (readable JSON via ``Logic.session``), new, unsaved-work
+"""Session handling of the window: save/open (readable JSON via ``carmreg.logic.io.session``), new, unsaved-work
 prompts, autosave after every change and recovery of the autosave a crashed run left behind."""
 
 from __future__ import annotations

@@ -158,12 +158,12 @@ def sample_nodes(mrml, sample_case_dir):
     xray = logics["volumes"].AddArchetypeVolume(str(sample_case_dir / "xray.dcm"), "X-ray", 0)
     clicks = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")
     clicks_node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "X-ray clicks")
-    matrix = module.ijk_to_ras(xray)
+    matrix = module.slicer_nodes().ijk_to_ras(xray)
     for label, (u, v) in zip(clicks.labels, clicks.uv_px, strict=True):
         ras = (matrix @ [u, v, 0.0, 1.0])[:3]
         clicks_node.AddControlPoint(*map(float, ras), label)
     parameter_node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", "CarmReg")
-    module.set_default_parameters(parameter_node)
+    module.slicer_nodes().set_default_parameters(parameter_node)
     for role, node in (("CT", ct), ("CTPoints", points), ("Xray", xray), ("XrayPoints", clicks_node)):
         parameter_node.SetNodeReferenceID(role, node.GetID())
     return {"ct": ct, "points": points, "xray": xray, "clicks": clicks_node, "parameters": parameter_node,
@@ -176,7 +176,7 @@ def test_mrml_nodes_become_carmregs_objects_as_its_own_readers_give_them(sample_
     from carmreg.logic.io.xray import load_xray
 
     module = _module()
-    ct, ct_file = module.ct_from_node(sample_nodes["ct"]), load_volume(sample_case_dir / "ct.nrrd")
+    ct, ct_file = module.slicer_nodes().ct_from_node(sample_nodes["ct"]), load_volume(sample_case_dir / "ct.nrrd")
     # Slicer's reader makes the IJK axes right-handed (here: k reversed): the same voxels at the same LPS places
     node_to_file_ijk = np.linalg.inv(ct_file.ijk_to_lps) @ ct.ijk_to_lps
     np.testing.assert_allclose(node_to_file_ijk, np.round(node_to_file_ijk), atol=1e-4)
@@ -184,17 +184,18 @@ def test_mrml_nodes_become_carmregs_objects_as_its_own_readers_give_them(sample_
     index = np.indices(ct.shape).reshape(3, -1)
     file_index = np.round(node_to_file_ijk[:3, :3]) @ index + np.round(node_to_file_ijk[:3, 3])[:, None]
     assert np.array_equal(ct.hu.reshape(-1), ct_file.hu[tuple(file_index.astype(int))])
-    points, points_file = module.ct_points_from_node(sample_nodes["points"]), read_landmarks_3d(
+    points, points_file = module.slicer_nodes().ct_points_from_node(sample_nodes["points"]), read_landmarks_3d(
         sample_case_dir / "ct_centroids.mrk.json")
     assert points.labels == points_file.labels
     np.testing.assert_allclose(points.points_lps_mm, points_file.points_lps_mm, atol=1e-6)
-    clicks = module.xray_points_from_node(sample_nodes["clicks"], sample_nodes["xray"])
+    clicks = module.slicer_nodes().xray_points_from_node(sample_nodes["clicks"], sample_nodes["xray"])
     assert clicks.labels == sample_nodes["clicks_uv"].labels
     np.testing.assert_allclose(clicks.uv_px, sample_nodes["clicks_uv"].uv_px, atol=1e-6)
-    xray, xray_file = module.xray_from_node(sample_nodes["xray"]), load_xray(sample_case_dir / "xray.dcm")
+    nodes = module.slicer_nodes()
+    xray, xray_file = nodes.xray_from_node(sample_nodes["xray"]), load_xray(sample_case_dir / "xray.dcm")
     assert xray.intrinsics.sdd_mm == xray_file.intrinsics.sdd_mm and xray.source == xray_file.source
-    assert np.array_equal(module.voxels_kji(sample_nodes["xray"])[0], np.asarray(xray_file.pixels))
-    manual = module.xray_from_node(sample_nodes["xray"], sdd_mm=1100.0, sod_mm=700.0)
+    assert np.array_equal(module.slicer_nodes().voxels_kji(sample_nodes["xray"])[0], np.asarray(xray_file.pixels))
+    manual = module.slicer_nodes().xray_from_node(sample_nodes["xray"], sdd_mm=1100.0, sod_mm=700.0)
     assert manual.intrinsics.sdd_mm == 1100.0 and manual.sod_mm == 700.0
 
 
@@ -203,18 +204,18 @@ def test_parameter_node_defaults_and_bad_values(mrml):
     module = _module()
     node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", "CarmReg parameters")
     node.SetParameter("SddMm", "1020")
-    module.set_default_parameters(node)
-    assert module.parameters_from_node(node) == (1020.0, 0.0, 0.0, "gc", True)
+    module.slicer_nodes().set_default_parameters(node)
+    assert module.slicer_nodes().parameters_from_node(node) == (1020.0, 0.0, 0.0, "gc", True)
     node.SetParameter("Metric", "psnr")
     node.SetParameter("CheckLevels", "false")
-    assert module.parameters_from_node(node)[3:] == ("psnr", False)
+    assert module.slicer_nodes().parameters_from_node(node)[3:] == ("psnr", False)
     node.SetParameter("Metric", "best")
     with pytest.raises(ValueError, match="Metric = 'best'; choose one of gc"):
-        module.parameters_from_node(node)
+        module.slicer_nodes().parameters_from_node(node)
     node.SetParameter("Metric", "gc")
     node.SetParameter("SodMm", "six hundred")
     with pytest.raises(ValueError, match="SodMm = 'six hundred' is not a number"):
-        module.parameters_from_node(node)
+        module.slicer_nodes().parameters_from_node(node)
 
 
 @pytest.mark.slow
@@ -225,14 +226,14 @@ def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_x
     module = _module()
     parameters = sample_nodes["parameters"]
     parameters.SetParameter("CheckLevels", "false")  # named clicks taken as named: one labelling, faster
-    result, ct, ct_landmarks, xray = module.register_nodes(parameters, cache_dir=str(tmp_path / "cache"))
+    result, ct, ct_landmarks, xray = module.slicer_nodes().register_nodes(parameters, cache_dir=str(tmp_path / "cache"))
     assert result.level_check is None or result.level_check["mode"] == "named"
     assert result.ok, result.warnings
     pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]
     assert len(pdes) == 3 and max(pdes) < 5.0
-    module.show_result(scene, parameters, result, xray)
+    module.slicer_nodes().show_result(scene, parameters, result, xray)
     # C-arm: camera origin -> the X-ray source in RAS; a CT centroid -> camera frame -> projects by K
-    to_parent = module.matrix_to_numpy(_to_parent(parameters.GetNodeReference("CarmTransform")))
+    to_parent = module.slicer_nodes().matrix_to_numpy(_to_parent(parameters.GetNodeReference("CarmTransform")))
     f = np.diag([-1.0, -1.0, 1.0, 1.0])
     np.testing.assert_allclose(to_parent[:3, 3], np.diag([-1.0, -1, 1]) @ result.geometry.source_lps_mm(result.pose),
                                atol=1e-6)
@@ -241,11 +242,11 @@ def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_x
     uv_k = (result.geometry.intrinsics.K @ camera)[:2] / camera[2]
     np.testing.assert_allclose(uv_k, project(result.projection_matrix, t12[None])[0], atol=1e-6)
     # DRR and overlay on the X-ray's grid; projected levels on the X-ray voxel of their pixel
-    xray_matrix = module.ijk_to_ras(sample_nodes["xray"])
+    xray_matrix = module.slicer_nodes().ijk_to_ras(sample_nodes["xray"])
     drr, overlay = parameters.GetNodeReference("DRR"), parameters.GetNodeReference("Overlay")
-    np.testing.assert_allclose(module.ijk_to_ras(drr), xray_matrix)
-    np.testing.assert_allclose(module.voxels_kji(drr)[0], result.drr_line_integral, rtol=1e-6)
-    assert module.voxels_kji(overlay).shape == (1, *xray.pixels.shape, 3)
+    np.testing.assert_allclose(module.slicer_nodes().ijk_to_ras(drr), xray_matrix)
+    np.testing.assert_allclose(module.slicer_nodes().voxels_kji(drr)[0], result.drr_line_integral, rtol=1e-6)
+    assert module.slicer_nodes().voxels_kji(overlay).shape == (1, *xray.pixels.shape, 3)
     levels = parameters.GetNodeReference("ProjectedLevels")
     assert levels.GetNumberOfControlPoints() == len(result.levels)
     for i, level in enumerate(result.levels):

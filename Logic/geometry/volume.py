@@ -12,6 +12,8 @@ spacing); it may be oblique. Nothing here assumes axis-aligned volumes.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,21 +66,22 @@ class Volume:
         n = np.array(self.shape, dtype=float)
         lo, hi = -0.5 * np.ones(3), n - 0.5
         ijk = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-        return ijk_to_points(self.ijk_to_lps, ijk)
+        return apply_affine(self.ijk_to_lps, ijk)
 
     def center_lps_mm(self) -> np.ndarray:
         """LPS position of the centre of the voxel grid."""
-        return ijk_to_points(self.ijk_to_lps, (np.array(self.shape, float) - 1.0) / 2.0)
+        return apply_affine(self.ijk_to_lps, (np.array(self.shape, float) - 1.0) / 2.0)
 
     def contains_lps(self, points_lps_mm: np.ndarray, margin_vox: float = 0.5) -> np.ndarray:
         """Boolean mask: which points lie inside the voxel grid (extended by ``margin_vox``)."""
-        ijk = ijk_to_points(self.lps_to_ijk, np.atleast_2d(points_lps_mm))
+        ijk = apply_affine(self.lps_to_ijk, np.atleast_2d(points_lps_mm))
         n = np.array(self.shape, float)
         return np.all((ijk >= -margin_vox) & (ijk <= n - 1 + margin_vox), axis=1)
 
 
-def ijk_to_points(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 affine to (..., 3) points."""
+def apply_affine(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``affine`` (4x4) applied to (..., 3) points: ``p @ A[:3, :3].T + A[:3, 3]`` (e.g. ``ijk_to_lps`` on voxel
+    indices, ``lps_to_ijk`` on LPS mm)."""
     points = np.asarray(points, dtype=np.float64)
     return points @ affine[:3, :3].T + affine[:3, 3]
 
@@ -116,7 +119,7 @@ def resample_isotropic(values: np.ndarray, ijk_to_lps: np.ndarray, spacing_mm: f
     out = ndimage.map_coordinates(src, np.meshgrid(*coords, indexing="ij"), order=1, mode="nearest")
     new_affine = ijk_to_lps.copy()
     new_affine[:3, :3] = ijk_to_lps[:3, :3] * ratio_exact[None, :]
-    new_affine[:3, 3] = ijk_to_points(ijk_to_lps, 0.5 * ratio_exact - 0.5)
+    new_affine[:3, 3] = apply_affine(ijk_to_lps, 0.5 * ratio_exact - 0.5)
     return out.astype(np.float32), new_affine
 
 
@@ -129,6 +132,9 @@ class MuLevel:
     spacing_mm: float | None  # None = the CT's own grid
 
 
+LEVEL_CACHE_FORMAT = 1
+
+
 class MuPyramid:
     """HU -> mu once, then resampled levels on demand (cached): ``pyramid.level(4.0)``.
 
@@ -136,21 +142,47 @@ class MuPyramid:
     later; any spacing works.
     """
 
-    def __init__(self, volume: Volume, mu_water_per_mm: float = MU_WATER_PER_MM):
+    def __init__(self, volume: Volume, mu_water_per_mm: float = MU_WATER_PER_MM, cache=None):
         self.volume = volume
         self.mu_water_per_mm = mu_water_per_mm
+        self.cache = cache  # an ``io.array_cache.ArrayCache`` (resampled levels kept across runs) or None
         self._levels: dict[float | None, MuLevel] = {}
+        self._ct_hash = None
+
+    def digest(self, spacing_mm: float) -> str:
+        """SHA-256 of the CT (HU voxels, affine) and of how its level of ``spacing_mm`` is made (spacing,
+        mu_water): it identifies the level without computing it (cache keys)."""
+        if self._ct_hash is None:
+            h = hashlib.sha256()
+            h.update(np.ascontiguousarray(self.volume.hu).tobytes())
+            h.update(np.asarray(self.volume.ijk_to_lps, np.float64).tobytes())
+            self._ct_hash = h
+        h = self._ct_hash.copy()
+        hu = self.volume.hu
+        h.update(json.dumps([str(hu.dtype), list(hu.shape), float(spacing_mm), float(self.mu_water_per_mm)]).encode())
+        return h.hexdigest()
 
     def level(self, spacing_mm: float | None = None) -> MuLevel:
         key = None if spacing_mm is None else round(float(spacing_mm), 4)
         if key not in self._levels:
-            full = self._levels.get(None)
-            if full is None:
-                mu = np.ascontiguousarray(hu_to_mu(self.volume.hu, self.mu_water_per_mm))
-                full = MuLevel(mu, self.volume.ijk_to_lps.copy(), None)
-                self._levels[None] = full
             if key is None:
-                return full
-            mu, affine = resample_isotropic(full.mu_per_mm, full.ijk_to_lps, key)
-            self._levels[key] = MuLevel(np.ascontiguousarray(mu), affine, key)
+                mu = np.ascontiguousarray(hu_to_mu(self.volume.hu, self.mu_water_per_mm))
+                self._levels[None] = MuLevel(mu, self.volume.ijk_to_lps.copy(), None)
+            else:
+                self._levels[key] = self._cached(key) or self._resampled(self.level(None), key)
         return self._levels[key]
+
+    def _cached(self, spacing_mm: float) -> MuLevel | None:
+        hit = self.cache.load("mu", self.digest(spacing_mm)[:24], LEVEL_CACHE_FORMAT) if self.cache else None
+        if hit is None:
+            return None
+        mu, meta = hit
+        return MuLevel(np.array(mu, dtype=np.float32, order="C"), np.asarray(meta["ijk_to_lps"], float), spacing_mm)
+
+    def _resampled(self, full: MuLevel, spacing_mm: float) -> MuLevel:
+        mu, affine = resample_isotropic(full.mu_per_mm, full.ijk_to_lps, spacing_mm)
+        level = MuLevel(np.ascontiguousarray(mu), affine, spacing_mm)
+        if self.cache:
+            self.cache.save("mu", self.digest(spacing_mm)[:24], level.mu_per_mm, LEVEL_CACHE_FORMAT,
+                            "attenuation level", {"ijk_to_lps": affine.tolist()})
+        return level

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import re
-import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -199,11 +198,12 @@ class Pairs:
     labels: list[str]
     points_lps_mm: np.ndarray
     uv_px: np.ndarray
-    warnings: list[str]
+    notes: list[str]          # levels on one side only, spine-order doubts: for the user, not errors
 
 
 def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs:
-    """Pair CT and X-ray points by level name (never by index); warn about one-sided labels."""
+    """Pair CT and X-ray points by level name (never by index); one-sided labels and spine-order doubts go
+    to ``Pairs.notes``; LandmarkError with fewer than ``minimum`` common levels."""
     ct_map, xr_map = ct.as_dict(), xray.as_dict()
     common = sorted(set(ct_map) & set(xr_map), key=level_index)
     notes = []
@@ -216,8 +216,6 @@ def pair_by_label(ct: Landmarks3D, xray: Landmarks2D, minimum: int = 3) -> Pairs
         raise LandmarkError(f"only {len(common)} level(s) ({', '.join(common) or 'none'}) are labelled on "
                             f"both the CT{ct_from} and the X-ray{xray_from}; label at least {minimum} of the "
                             "same vertebrae on both")
-    for note in notes:
-        warnings.warn(note, stacklevel=2)
     return Pairs(common, np.array([ct_map[lb] for lb in common]), np.array([xr_map[lb] for lb in common]),
                  notes)
 

@@ -48,8 +48,22 @@ def regular_file(path: str | Path, what: str) -> Path:
     return path
 
 
+def _bytes_left(handle: BinaryIO) -> int | None:
+    """Bytes between the position and the end of a regular file; None for anything else (checked as read)."""
+    try:
+        info = os.fstat(handle.fileno())
+        return info.st_size - handle.tell() if stat.S_ISREG(info.st_mode) else None
+    except (OSError, AttributeError, ValueError):
+        return None
+
+
 def read_exactly(handle: BinaryIO, n_bytes: int, path: Path, what: str) -> bytearray:
-    """The next ``n_bytes`` of ``handle`` (a writable buffer); InputFileError when the file ends before."""
+    """The next ``n_bytes`` of ``handle`` (a writable buffer); InputFileError when the file ends before. A regular
+    file too short for them is refused before the buffer is allocated (a header may announce gigabytes)."""
+    left = _bytes_left(handle)
+    if left is not None and left < n_bytes:
+        raise InputFileError(f"{path}: holds {left} bytes of {what} but its header needs {n_bytes}; the file is "
+                             "truncated, copy it again")
     data = bytearray(n_bytes)
     view, got = memoryview(data), 0
     while got < n_bytes:

@@ -26,6 +26,7 @@ def load_nifti(path: Path) -> Volume:
     except _nifti_errors() as exc:
         raise InputFileError(f"{path}: not a readable NIfTI file ({describe(exc, 100)})") from None
     check_memory(shape, 4 + itemsize, path)
+    _check_payload(image, shape, itemsize, path)
     try:
         affine_ras, which = _nifti_affine(image)
     except _nifti_errors() as exc:
@@ -42,6 +43,36 @@ def load_nifti(path: Path) -> Volume:
         meta["warning_orientation"] = ("NIfTI header has neither sform nor qform; orientation assumed, "
                                        "check left/right in the views")
     return checked_volume(data, LPS_FROM_RAS @ affine_ras, path, meta)
+
+
+def _check_payload(image, shape, itemsize: int, path: Path) -> None:
+    """A file too short for the voxels its header announces is refused before any array is allocated (nibabel
+    allocates them first): an uncompressed ``.nii`` by its size, a ``.nii.gz`` by inflating it in chunks, counted
+    and dropped, up to the size needed (memory bounded by one chunk)."""
+    offset = int(getattr(image.dataobj, "offset", 0) or 0)
+    needed = offset + int(np.prod([int(n) for n in shape], dtype=np.int64)) * itemsize
+    gz = path.name.lower().endswith(".gz")
+    size = _inflated_size(path, needed) if gz else path.stat().st_size
+    if size < needed:
+        raise InputFileError(f"{path}: {'inflates to' if gz else 'holds'} {size} bytes but its header needs "
+                             f"{needed} (voxel data from byte {offset}); the file is truncated, copy it again")
+
+
+def _inflated_size(path: Path, limit: int, chunk: int = 1 << 22) -> int:
+    """Bytes a gzip file inflates to, counted up to ``limit`` (corrupt data: the count so far)."""
+    import gzip
+
+    total = 0
+    try:
+        with gzip.open(path, "rb") as stream:
+            while total < limit:
+                data = stream.read(min(chunk, limit - total))
+                if not data:
+                    break
+                total += len(data)
+    except (OSError, EOFError, zlib.error):
+        pass
+    return total
 
 
 def _nifti_errors() -> tuple:

@@ -25,7 +25,7 @@ File format (``*.carmreg.json``)::
      "geometry_overrides": {...}, "landmarks": {"ct": [...], "xray": [...]},
      "parameters": {...}, "last_result": {...} | null}
 
-Writes are atomic (``Logic.atomic``). The GUI also keeps an *autosave* copy after every edit in a state
+Writes are atomic (``io.atomic``). The GUI also keeps an *autosave* copy after every edit in a state
 folder (``$CARMREG_STATE_DIR`` or ``~/.local/state/carmreg``), one file per running process
 (``autosave-<pid>.carmreg.json``), removed on a clean exit. An autosave left by a process that is no longer
 running means a crash or a kill: ``find_recoverable`` lists those so the user can be offered recovery.

@@ -4,7 +4,7 @@ What CarmReg writes
 -------------------
 The registration result as the rigid 4x4 ``lps_to_camera``: it maps a CT point (LPS mm) to the C-arm
 camera frame (origin at the X-ray source, mm; +z from the source toward the detector, +x along detector
-columns, +y along detector rows; see ``Logic/camera.py``). In ITK terms a transform file holds the
+columns, +y along detector rows; see ``geometry.camera``). In ITK terms a transform file holds the
 *resampling* transform, which maps points of the **fixed** space to the **moving** space; here the fixed
 space is the CT (LPS) and the moving space is the C-arm camera frame. 3D Slicer, which shows the inverse
 ("modelling", camera -> CT) transform in RAS, therefore places an object given in camera coordinates

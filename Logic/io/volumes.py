@@ -1,7 +1,7 @@
 """Reading and writing CT volumes: DICOM series, NIfTI, NRRD, MetaImage -> ``Volume`` (HU, LPS mm).
 
 Every reader returns ``Volume(hu, ijk_to_lps)`` with ``hu[i, j, k]`` (i fastest in the file) and the 4x4
-voxel-centre-index -> LPS mm affine (see ``Logic/volume.py``). HU stay int16 when the file's values are
+voxel-centre-index -> LPS mm affine (see ``geometry.volume``). HU stay int16 when the file's values are
 integers that fit int16; otherwise they become float32.
 
 Formats

@@ -51,29 +51,68 @@ class Verdict:
     checks: dict = field(default_factory=dict)    # each check's values and pass/fail
 
 
-def _checks(winner: LabellingFit, rival: LabellingFit | None, rule: ConfidenceRule, stable: bool,
-            appearance_clear: bool, landmarks: bool) -> tuple[dict, list[str]]:
+@dataclass
+class Evidence:
+    """The numbers the rule judges (all recorded in ``result.json["level_check"]["checks"]``): the winner's image
+    agreement (GC), the click mPDE (detector mm) of the winner and of the labelling it beat (nan: none), whether
+    the leading two kept their order when refitted from each other's pose, and whether the X-ray's appearance is
+    trusted."""
+
+    gc: float
+    winner_mpde_mm: float = float("nan")
+    rival_mpde_mm: float = float("nan")
+    stable: bool = True
+    appearance_ok: bool = True
+    winner_labels: tuple = ()
+    rival_labels: tuple = ()
+
+    @classmethod
+    def of(cls, winner: LabellingFit, rival: LabellingFit | None, stable: bool, appearance_ok: bool) -> Evidence:
+        return cls(winner.similarity, winner.mpde_mm, rival.mpde_mm if rival is not None else float("nan"),
+                   stable, appearance_ok, tuple(winner.labels), tuple(rival.labels) if rival is not None else ())
+
+    @classmethod
+    def from_checks(cls, checks: dict) -> Evidence:
+        """The evidence as ``check_results`` recorded it (for re-judging recorded runs under another rule)."""
+        fit = checks.get("landmark_fit") or {}
+        return cls(float(checks["image_agreement"]["gc"]), float(fit.get("winner_mpde_mm", float("nan"))),
+                   float(fit.get("rival_mpde_mm", float("nan"))), bool(checks["stability"]["ok"]),
+                   bool(checks["appearance"]["ok"]))
+
+
+def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> tuple[dict, list[str]]:
+    """Each check's values and pass/fail, and the reasons in words of those that failed (module docstring)."""
     checks, reasons = {}, []
-    gc = winner.similarity
-    checks["image_agreement"] = {"gc": gc, "min": rule.min_similarity, "ok": bool(gc >= rule.min_similarity)}
+    checks["image_agreement"] = {"gc": e.gc, "min": rule.min_similarity, "ok": bool(e.gc >= rule.min_similarity)}
     if not checks["image_agreement"]["ok"]:
-        reasons.append(f"the image agrees poorly even with the best labelling (GC {gc:.2f} < "
+        reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
                        f"{rule.min_similarity:.2f})")
-    if landmarks and rival is not None and np.isfinite(rival.mpde_mm):
-        limit = rule.landmark_ratio * rival.mpde_mm + rule.landmark_slack_mm
-        ok = bool(winner.mpde_mm <= limit)
-        checks["landmark_fit"] = {"winner_mpde_mm": winner.mpde_mm, "rival_mpde_mm": rival.mpde_mm,
+    if landmarks and np.isfinite(e.rival_mpde_mm):
+        limit = rule.landmark_ratio * e.rival_mpde_mm + rule.landmark_slack_mm
+        ok = bool(e.winner_mpde_mm <= limit)
+        checks["landmark_fit"] = {"winner_mpde_mm": e.winner_mpde_mm, "rival_mpde_mm": e.rival_mpde_mm,
                                   "limit_mm": limit, "ok": ok}
         if not ok:
-            reasons.append(f"the clicks fit {', '.join(winner.labels)} clearly worse ({winner.mpde_mm:.1f} mm) than "
-                           f"{', '.join(rival.labels)} ({rival.mpde_mm:.1f} mm)")
-    checks["stability"] = {"ok": bool(stable)}
-    if not stable:
+            reasons.append(f"the clicks fit {', '.join(e.winner_labels) or 'the winner'} clearly worse "
+                           f"({e.winner_mpde_mm:.1f} mm) than {', '.join(e.rival_labels) or 'its rival'} "
+                           f"({e.rival_mpde_mm:.1f} mm)")
+    checks["stability"] = {"ok": bool(e.stable)}
+    if not e.stable:
         reasons.append("the leading labelling changed when the two best were refitted from each other's pose")
-    checks["appearance"] = {"ok": bool(appearance_clear)}
-    if not appearance_clear:
+    checks["appearance"] = {"ok": bool(e.appearance_ok)}
+    if not e.appearance_ok:
         reasons.append("the X-ray's appearance is not clear (bone dark or bright, or a mirrored or turned display)")
     return checks, reasons
+
+
+def judge(d: float, e: Evidence, rule: ConfidenceRule) -> tuple[str, list[str], dict]:
+    """(status, reasons, checks) from the margin ``d`` of the reference labelling (the surgeon's names, or the
+    best labelling) over the best other, and the evidence: steps 2 and 3 of the module docstring."""
+    status = "confident" if d >= rule.margin else ("ambiguous" if d > -rule.margin else "contradicted")
+    checks, reasons = check_results(e, rule)
+    if status != "ambiguous" and reasons:
+        return "ambiguous", reasons, checks
+    return status, [], checks
 
 
 def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: ConfidenceRule, *, stable: bool = True,
@@ -84,16 +123,13 @@ def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: Confidenc
     reference = given if given is not None else winner
     others = [f for f in ranked if f is not reference]
     if not others:
-        checks, reasons = _checks(winner, None, rule, stable, appearance_clear, landmarks=True)
-        return Verdict("ambiguous" if reasons else "confident", float("inf"), winner, None, reasons, checks)
+        status, reasons, checks = judge(float("inf"), Evidence.of(winner, None, stable, appearance_clear), rule)
+        return Verdict(status, float("inf"), winner, None, reasons, checks)
     d = float(others[0].score - reference.score)
     runner_up = others[0] if reference is winner else winner
-    status = "confident" if d >= rule.margin else ("ambiguous" if d > -rule.margin else "contradicted")
     rival = others[0] if reference is winner else reference
-    checks, reasons = _checks(winner, rival, rule, stable, appearance_clear, landmarks=True)
-    if status != "ambiguous" and reasons:
-        return Verdict("ambiguous", d, winner, runner_up, reasons, checks)
-    return Verdict(status, d, winner, runner_up, [], checks)
+    status, reasons, checks = judge(d, Evidence.of(winner, rival, stable, appearance_clear), rule)
+    return Verdict(status, d, winner, runner_up, reasons, checks)
 
 
 def decide_image_only(ranked: list[LabellingFit], rule: ConfidenceRule, *, appearance_clear: bool = True) -> Verdict:
@@ -101,7 +137,7 @@ def decide_image_only(ranked: list[LabellingFit], rule: ConfidenceRule, *, appea
     winner = ranked[0]
     runner_up = ranked[1] if len(ranked) > 1 else None
     d = float(runner_up.score - winner.score) if runner_up is not None else float("inf")
-    checks, reasons = _checks(winner, runner_up, rule, True, appearance_clear, landmarks=False)
+    checks, reasons = check_results(Evidence.of(winner, runner_up, True, appearance_clear), rule, landmarks=False)
     if d < rule.margin:
         return Verdict("ambiguous", d, winner, runner_up, [], checks)
     return Verdict("ambiguous" if reasons else "proposed", d, winner, runner_up, reasons, checks)

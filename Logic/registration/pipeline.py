@@ -28,24 +28,19 @@ Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 
 
 from __future__ import annotations
 
-import dataclasses
 import time
-import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals
-from carmreg.logic.errors import CancelledError, LandmarkError, RegistrationError
-from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, nominal_geometry, project
-from carmreg.logic.geometry.projection_distance import mpde_mm, pde_mm
+from carmreg.logic.errors import CancelledError, RegistrationError
+from carmreg.logic.geometry.camera import CarmPose, nominal_geometry
+from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
     CLEAR_POLARITY_GC,
     POLARITIES,
-    Appearance,
     decide_polarity,
-    fixed_appearance,
     image_polarity,
     orientation_scores,
     polarity_scores,
@@ -53,136 +48,37 @@ from carmreg.logic.image.appearance import (
 )
 from carmreg.logic.image.field import field_mask
 from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor
-from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, level_index, pair_by_label, spine_order_warnings
+from carmreg.logic.io.array_cache import ArrayCache
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
-from carmreg.logic.registration.database import DrrDatabase, build_database, grid, source_digest
-from carmreg.logic.registration.depth import DepthResult, depth_search, tx_limits
-from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
-from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, coarse_refine_parameters
-from carmreg.logic.registration.labellings import check_labelling_possible, ct_level_names, identifiable_clicks
+from carmreg.logic.registration.database import build_database, grid
+from carmreg.logic.registration.depth import depth_search
+from carmreg.logic.registration.fine import fine_search
+from carmreg.logic.registration.image_refine import intensity_refine
+from carmreg.logic.registration.labelling_fit import FitContext
+from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
-    LevelIdentification,
     identify_from_image,
     identify_levels,
 )
+from carmreg.logic.registration.outcome import build_result
+from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight, require_ready
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
-from carmreg.logic.registration.spatial import SpatialResult, spatial_search
+from carmreg.logic.registration.spatial import spatial_search
+from carmreg.logic.registration.state import (
+    STAGES,
+    RegistrationParameters,
+    RegistrationResult,
+    RegistrationState,
+    StageResult,
+    chosen_fit,
+    drop_results_from,
+    initial_appearance,
+)
 from carmreg.logic.similarity.metrics import METRICS
 
-STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
-MIN_CLICKS = 3  # X-ray clicks needed (named or not); zero clicks = levels from the image alone
-
-
-@dataclass
-class RegistrationParameters:
-    """Every choice of the pipeline, with the paper's value where it gives one."""
-
-    metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
-    polarity: str = "auto"                  # auto (found from the image) | bone-dark | bone-bright
-    all_metrics: bool = False               # also compute the other six maps (paper Fig. 6; ~7x the time)
-    coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
-    ty_half_range_mm: float = 50.0          # medio-lateral search +- (paper: 50)
-    tz_half_range_mm: float | None = None   # superior-inferior +-; None = cover every labelled CT level
-    grid_step_mm: float = 2.0               # database step (paper: 2 mm)
-    depth_far_mm: float = 400.0             # farthest source retreat (paper: 40-50 cm)
-    depth_step_mm: float = 10.0             # paper: 10 mm
-    fine: FineParameters = field(default_factory=FineParameters)
-    refine_coarse: RefineParameters = field(default_factory=coarse_refine_parameters)
-    refine: RefineParameters = field(default_factory=RefineParameters)
-    refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
-    level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
-    identify: IdentifyParameters = field(default_factory=IdentifyParameters)
-    final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
-    max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
-    magnification_range: tuple = (1.05, 3.0)
-    cache_dir: str | None = None
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-@dataclass
-class StageResult:
-    name: str
-    pose: CarmPose
-    mpde_mm: float | None
-    seconds: float
-    extra: dict = field(default_factory=dict)
-
-
-@dataclass
-class RegistrationState:
-    """Everything the stages share; filled stage by stage."""
-
-    ct: Volume
-    ct_landmarks: Landmarks3D
-    xray: XrayImage
-    xray_landmarks: Landmarks2D
-    parameters: RegistrationParameters
-    geometry: CarmGeometry
-    pairs: Pairs | None                     # None until the levels stage names unnamed clicks (or no clicks)
-    pyramid: MuPyramid
-    xray_line_integral: np.ndarray
-    mask: np.ndarray
-    coarse_factor: int
-    database: DrrDatabase | None = None
-    spatial: SpatialResult | None = None
-    depth: DepthResult | None = None
-    fine: FineResult | None = None
-    refine: RefineResult | None = None
-    refined_pose: np.ndarray | None = None
-    identification: LevelIdentification | None = None
-    appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
-    known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
-    given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
-    drr_line_integral: np.ndarray | None = None
-    stages: list = field(default_factory=list)
-    warnings: list = field(default_factory=list)
-
-    @property
-    def pose(self) -> np.ndarray:
-        """The best pose so far (6,)."""
-        if self.refined_pose is not None:
-            return self.refined_pose
-        if self.fine is not None:
-            return self.fine.pose
-        if self.depth is not None:
-            return np.array([self.depth.tx_mm, self.depth.ty_mm, self.depth.tz_mm, 0, 0, 0], float)
-        if self.identification is not None and self.identification.mode == "image_only":
-            return np.asarray(self.identification.winner.pose, float)
-        if self.spatial is not None:
-            return np.array([self.database.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
-        return np.zeros(6)
-
-
-@dataclass
-class RegistrationResult:
-    pose: CarmPose
-    projection_matrix: np.ndarray
-    geometry: CarmGeometry
-    stages: list
-    levels: list                    # [{"label", "uv_px", "fitted", "pde_mm", "in_image", "clicked_uv_px",
-    #                                  "name_margin"}] for every CT-labelled level
-    drr_line_integral: np.ndarray | None
-    xray_line_integral: np.ndarray
-    convergence: list
-    trajectory: list
-    similarity_maps: dict
-    database_grid: dict
-    ok: bool
-    warnings: list
-    parameters: RegistrationParameters
-    inputs: dict = field(default_factory=dict)
-    level_check: dict | None = None  # LevelIdentification.as_dict(): mode, status, margin, assigned_labels ...
-    appearance: Appearance | None = None  # the X-ray's polarity and storage, and the evidence
-    field_mask: np.ndarray | None = None  # (rows, cols) exposed field of the X-ray
-
-    @property
-    def magnification(self) -> float:
-        return float(self.geometry.magnification(self.pose))
-
+__all__ = ["MIN_CLICKS", "STAGES", "CarmRegLogic", "RegistrationParameters", "RegistrationResult", "StageResult"]
 
 class CarmRegLogic:
     """Headless logic class: ``register(...)`` or ``prepare(...)`` then ``run_stage(state, name)``."""
@@ -217,17 +113,19 @@ class CarmRegLogic:
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
         check_xray_content(xray.pixels, xray.source)
         check_ct_content(ct.hu, ct.source)
-        pairs, notes = _given_pairs(ct_landmarks, xray_landmarks)
-        _check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
+        require_ready(preflight(ct_landmarks, xray_landmarks))
+        pairs, notes = given_pairs(ct_landmarks, xray_landmarks)
+        check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
-        appearance = _initial_appearance(xray, params)
+        appearance = initial_appearance(xray, params)
         line_integral = attenuation(xray.pixels, mask, appearance.bone_dark, appearance.storage)
         factor = coarse_factor(intrinsics.pixel_spacing_mm, params.coarse_spacing_mm)
-        return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs,
-                                 MuPyramid(ct), line_integral, mask, factor, given_pairs=pairs, warnings=notes,
+        pyramid = MuPyramid(ct, cache=ArrayCache(params.cache_dir) if params.cache_dir else None)
+        return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs, pyramid,
+                                 line_integral, mask, factor, given_pairs=pairs, warnings=notes,
                                  appearance=appearance)
 
     def register(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
@@ -246,9 +144,11 @@ class CarmRegLogic:
         if runner is None:
             raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
         self._report(name, 0.0, f"{name} started")
-        _drop_results_from(state, name)
+        drop_results_from(state, name)
         start = time.perf_counter()
         extra = runner(state) or {}
+        if state.pyramid.cache is not None:
+            state.warnings += state.pyramid.cache.take_notes()
         pose = state.pose
         m = float(mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px)) \
             if name in ("spatial", "depth", "fine", "refine") and state.pairs is not None else None
@@ -271,14 +171,11 @@ class CarmRegLogic:
         p = state.parameters
         intr = state.geometry.intrinsics.binned(state.coarse_factor)
         ty, tz = self._coarse_grid(state)
-        digest = source_digest(state.ct.hu, state.ct.ijk_to_lps, p.coarse_spacing_mm, state.pyramid.mu_water_per_mm)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            state.database = build_database(lambda: state.pyramid.level(p.coarse_spacing_mm), state.geometry, intr,
-                                            ty, tz, 0.0, p.cache_dir, digest=digest,
-                                            progress=lambda f: self._report("database", min(f, 0.999),
-                                                                            "rendering DRRs"))
-        state.warnings += [str(w.message) for w in caught]
+        digest = state.pyramid.digest(p.coarse_spacing_mm)
+        state.database = build_database(lambda: state.pyramid.level(p.coarse_spacing_mm), state.geometry, intr,
+                                        ty, tz, 0.0, p.cache_dir, digest=digest,
+                                        progress=lambda f: self._report("database", min(f, 0.999), "rendering DRRs"))
+        state.warnings += state.database.notes
         return {"drrs": int(len(ty) * len(tz)), "from_cache": state.database.from_cache,
                 "detector_px": list(intr.size_px), "key": state.database.key}
 
@@ -341,13 +238,14 @@ class CarmRegLogic:
             per_metric[name] = {"ty_mm": ty, "tz_mm": tz, "mpde_mm": None if state.pairs is None else float(
                 mpde_mm(state.geometry, pose, state.pairs.points_lps_mm, state.pairs.uv_px))}
         return {"metric": p.metric, "per_metric": per_metric,
-                "seconds_by_metric": dict(state.spatial.seconds_by_metric), "appearance": appearance}
+                "seconds_by_metric": dict(state.spatial.seconds_by_metric),
+                "polarity": appearance["polarity"]}  # the whole decision: result.json "appearance"
 
     def _depth(self, state: RegistrationState) -> dict:
         p = state.parameters
         if state.pairs is None:
             return {"skipped": "no clicks: the pose comes from the image alone (levels stage)"}
-        fit = _chosen_fit(state)
+        fit = chosen_fit(state)
         if fit is not None:  # the levels stage ran this very search for the chosen labelling
             state.depth = fit.depth
         else:
@@ -361,7 +259,7 @@ class CarmRegLogic:
     def _fine(self, state: RegistrationState) -> dict:
         if state.pairs is None:
             return {"skipped": "no clicks"}
-        fit = _chosen_fit(state)
+        fit = chosen_fit(state)
         if fit is not None and state.depth is fit.depth:  # the levels stage's fine search from the same start
             state.fine = fit.fine
         else:
@@ -446,7 +344,7 @@ class CarmRegLogic:
         ident = state.identification
         if ident is not None and ident.mode == "image_only":
             return np.asarray(ident.winner.pose, float), True
-        fit = _chosen_fit(state)
+        fit = chosen_fit(state)
         if fit is not None and fit.refined and state.fine is fit.fine:
             return fit.pose, True
         p = state.parameters
@@ -477,155 +375,6 @@ class CarmRegLogic:
         pixels = xray_pixels if xray_pixels is not None else result.xray_line_integral
         return save_result(result, out_dir, pixels, clicked, ct=ct, ct_landmarks=ct_landmarks)
 
+    # ------------------------------------------------------------------ result
     def result(self, state: RegistrationState) -> RegistrationResult:
-        pose = CarmPose.from_array(state.pose)
-        P = state.geometry.projection_matrix(pose)
-        fitted = set(state.pairs.labels) if state.pairs is not None else set()
-        clicked = dict(zip(state.pairs.labels, state.pairs.uv_px, strict=True)) if state.pairs is not None else {}
-        spacing = state.geometry.intrinsics.pixel_spacing_mm
-        named = _name_margins(state.identification)
-        levels = []
-        for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
-            uv = project(P, point[None])[0]
-            pde = float(pde_mm(P, point[None], clicked[label][None], spacing)[0]) if label in clicked else None
-            levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
-                           "pde_mm": pde, "in_image": _in_image(uv, state.geometry.intrinsics.size_px),
-                           "clicked_uv_px": [float(x) for x in clicked[label]] if label in clicked else None,
-                           "name_margin": named.get(label)})
-        problems = self._checks(state, pose)
-        spatial = state.spatial
-        return RegistrationResult(
-            pose=pose, projection_matrix=P, geometry=state.geometry, stages=list(state.stages), levels=levels,
-            drr_line_integral=state.drr_line_integral, xray_line_integral=state.xray_line_integral,
-            convergence=state.fine.convergence if state.fine else [],
-            trajectory=state.fine.trajectory if state.fine else [],
-            similarity_maps=spatial.maps if spatial else {},
-            database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
-            if state.database else {},
-            ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
-            level_check=state.identification.as_dict() if state.identification else None,
-            appearance=state.appearance, field_mask=state.mask,
-            inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
-                    "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
-                    "xray_frame": state.xray.meta.get("frame"),
-                    "xray_frames_in_file": state.xray.meta.get("n_frames")})
-
-    def _checks(self, state: RegistrationState, pose: CarmPose) -> list[str]:
-        """The pipeline's own sanity checks; any message here makes ``ok`` False."""
-        problems = []
-        p = state.parameters
-        image_only = state.identification is not None and state.identification.mode == "image_only"
-        if state.fine is None and not image_only:
-            problems.append("the fine stage did not run")
-        elif state.fine is not None and state.fine.mpde_mm > p.max_fine_mpde_mm:
-            problems.append(f"fine-stage mPDE {state.fine.mpde_mm:.1f} mm exceeds {p.max_fine_mpde_mm:.1f} mm: "
-                            "the landmarks do not agree with any rigid C-arm pose; check the level names")
-        mag = float(state.geometry.magnification(pose))
-        lo, hi = p.magnification_range
-        if not lo <= mag <= hi:
-            problems.append(f"magnification {mag:.2f} is outside the C-arm range {lo}-{hi}; check SDD, pixel "
-                            "spacing and the landmarks")
-        if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
-            problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
-        a = state.appearance
-        if a is not None and a.orientation != "as-stored":
-            best, stored = a.orientation_scores[a.orientation], a.orientation_scores["as-stored"]
-            problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
-                            f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
-                            "acquired (head up, patient's right on the viewer's left) and register again")
-        if state.identification is not None and state.identification.status == "contradicted":
-            problems.append(state.identification.message)
-        lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
-        if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
-            problems.append("the found source-to-detector position is outside the searched range")
-        return problems
-
-
-def _drop_results_from(state: RegistrationState, name: str) -> None:
-    """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
-    later = STAGES[STAGES.index(name):]
-    fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
-              "refine": ("refine", "refined_pose"), "levels": ("identification",), "final_drr": ("drr_line_integral",)}
-    for stage in later:
-        for attribute in fields[stage]:
-            setattr(state, attribute, None)
-    if "levels" in later:  # the pairs the levels stage chose are its result too
-        state.pairs = state.given_pairs
-    if "spatial" in later:  # the polarity the spatial stage found, and the attenuation image built with it
-        state.appearance = _initial_appearance(state.xray, state.parameters)
-        state.xray_line_integral = attenuation(state.xray.pixels, state.mask, state.appearance.bone_dark,
-                                               state.appearance.storage)
-    state.stages = [s for s in state.stages if s.name not in later]
-
-
-def _chosen_fit(state: RegistrationState) -> LabellingFit | None:
-    """The levels stage's fit of the labelling the registration continues with (None without one)."""
-    ident = state.identification
-    if ident is None or ident.mode == "image_only" or state.pairs is None:
-        return None
-    fit = ident.chosen
-    return fit if fit.labels == list(state.pairs.labels) and fit.depth is not None else None
-
-
-def _initial_appearance(xray: XrayImage, params: RegistrationParameters) -> Appearance:
-    """The appearance before the spatial stage finds it: the user's polarity, else the file's."""
-    return fixed_appearance(params.polarity, xray.bone_dark, xray.sources.get("bone_dark", ""))
-
-
-def _name_margins(ident: LevelIdentification | None) -> dict[str, float]:
-    """Per level named by the levels stage, how far its labelling is ahead of the best other one (every other
-    labelling renames every click, so it is the labelling's margin)."""
-    if ident is None:
-        return {}
-    labels = ident.visible_labels if ident.mode == "image_only" else ident.chosen.labels
-    return {lb: float(ident.margin) for lb in labels}
-
-
-def _in_image(uv: np.ndarray, size_px: tuple[int, int]) -> bool:
-    return bool(-0.5 <= uv[0] <= size_px[0] - 0.5 and -0.5 <= uv[1] <= size_px[1] - 0.5)
-
-
-def _given_pairs(ct_landmarks: Landmarks3D, xray_landmarks: Landmarks2D) -> tuple[Pairs | None, list[str]]:
-    """Pairs by name when every click is named (LandmarkError with fewer than ``MIN_CLICKS`` common levels);
-    None when some clicks are unnamed (at least ``MIN_CLICKS`` of them) or there are none. Also the
-    plausibility notes."""
-    n = len(xray_landmarks.labels)
-    if n and xray_landmarks.named:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            pairs = pair_by_label(ct_landmarks, xray_landmarks, MIN_CLICKS)
-        return pairs, [str(w.message) for w in caught]
-    if 0 < n < MIN_CLICKS:
-        raise LandmarkError(f"only {n} X-ray click(s): click the centres of at least {MIN_CLICKS} adjacent "
-                            "vertebrae (named or not), or none to identify the levels from the image alone")
-    if n:  # unnamed or partly named: refuse now, not after the database, what no labelling can satisfy
-        check_labelling_possible(xray_landmarks, ct_level_names(ct_landmarks))
-    return None, spine_order_warnings(ct_landmarks)
-
-
-def _check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, clicks: Landmarks2D) -> None:
-    """Refuse points outside the CT or the image, and degenerate (coincident) point sets."""
-    outside = [lb for lb, inside in zip(ct_landmarks.labels, ct.contains_lps(ct_landmarks.points_lps_mm),
-                                        strict=True) if not inside]
-    if outside:
-        raise LandmarkError(f"CT landmark(s) {', '.join(outside)} in {ct_landmarks.source or 'the CT landmarks'} "
-                            f"lie outside the CT volume {ct.source}: check the landmark file's coordinate system "
-                            "(LPS vs RAS) and that it belongs to this CT")
-    cols, rows = xray.size_px
-    used = identifiable_clicks(clicks, ct_level_names(ct_landmarks))
-    uv_all = np.asarray(clicks.uv_px, float).reshape(-1, 2)[used]
-    off = [clicks.labels[i] or f"unnamed click {i + 1}" for i, uv in zip(used, uv_all, strict=True)
-           if not _in_image(uv, (cols, rows))]
-    if off:
-        raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image "
-                            f"{xray.source}: check they are (column, row) pixels of this X-ray")
-    if len(ct_landmarks.labels) < 3:
-        raise LandmarkError(f"only {len(ct_landmarks.labels)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: "
-                            "label at least 3 vertebrae in the CT")
-    for name, pts in (("CT", ct_landmarks.points_lps_mm), ("X-ray", uv_all)):
-        if len(pts) < 2:
-            continue
-        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
-        if d.min() < 1.0:
-            raise LandmarkError(f"two {name} landmarks are less than 1 {'mm' if name == 'CT' else 'px'} apart: "
-                                "each level needs its own centroid")
+        return build_result(state)

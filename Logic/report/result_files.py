@@ -199,7 +199,7 @@ def write_detector_nrrd(path: str | Path, image: np.ndarray, geometry, pose, con
                                             np.asarray(geometry.projection_matrix(pose)).ravel()),
               "content": content}
     data = np.ascontiguousarray(np.asarray(image, dtype).T[:, :, None])  # nrrd axis 0 fastest = columns
-    return atomic_write(path, lambda tmp: nrrd.write(str(tmp), data, header))
+    return atomic_write(path, lambda tmp: nrrd.write(str(tmp), data, header, compression_level=1))
 
 
 def write_drr_nrrd(path: str | Path, line_integral: np.ndarray, geometry, pose) -> Path:

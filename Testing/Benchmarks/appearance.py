@@ -45,16 +45,10 @@ from scipy import ndimage, signal
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
 from carmreg.logic.io.landmarks import Landmarks3D
-from carmreg.logic.simulation.simulator import (
-    SimulationOptions,
-    add_kwire,
-    choose_click_levels,
-    draw_level_motions,
-    motion_centers,
-    plan_kwires,
-    random_pose,
-    render_moved_anatomy,
-)
+from carmreg.logic.simulation.options import SimulationOptions
+from carmreg.logic.simulation.render import add_kwire, render_moved_anatomy
+from carmreg.logic.simulation.scene import draw_level_motions, plan_kwires, random_pose
+from carmreg.logic.simulation.simulator import choose_click_levels, motion_centers
 
 MU_WATER_PER_MM = 0.02
 BONE_THRESHOLD_HU = 100.0

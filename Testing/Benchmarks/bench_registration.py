@@ -30,13 +30,9 @@ from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParame
 from carmreg.logic.resources import sample_case
 from carmreg.logic.similarity.metrics import METRICS
 from carmreg.logic.simulation.evaluation import evaluate
-from carmreg.logic.simulation.simulator import (
-    SimulationOptions,
-    default_geometry,
-    random_pose,
-    sample_options,
-    simulate_case,
-)
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+from carmreg.logic.simulation.scene import random_pose
+from carmreg.logic.simulation.simulator import simulate_case
 
 
 def load_case():

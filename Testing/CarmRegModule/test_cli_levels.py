@@ -31,7 +31,7 @@ def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir,
     assert set(fitted) == set(truth.labels)
     assert all(lv["name_margin"] == pytest.approx(check["margin"]) for lv in fitted.values())
     assert "level identification: clicks named" in capsys.readouterr().out
-    # the 3D Slicer scene (Testing/Logic/test_slicer_files.py opens one with Slicer's loader)
+    # the 3D Slicer scene (Testing/Logic/report/test_slicer_files.py opens one with Slicer's loader)
     scene = tmp_path / "out" / "slicer"
     assert {"CarmReg.mrml", "ct.nrrd", "xray.nrrd", "drr.nrrd", "carm.tfm"} <= {p.name for p in scene.iterdir()}
     projected = json.loads((scene / "projected_levels.mrk.json").read_text())["markups"][0]["controlPoints"]

@@ -92,7 +92,7 @@ def test_too_few_common_levels_is_explained_before_and_on_running(window, synthe
     _load_case(window, synthetic_case)
     window.xray_store.remove(window.xray_store.find("L2").id)
     ready = window.registration_panel.ready_label.text()
-    assert "at least 3 levels" in ready and "now 2: T12, L1" in ready
+    assert "only 2 level(s) (T12, L1)" in ready and "at least 3" in ready
     assert not window.registration_panel.run_button.isEnabled()
     window._action_register()  # Ctrl+R still reaches the logic, which refuses with a clear message
     window.wait_for_registration(60)

@@ -188,14 +188,14 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
     store.add(None, uv[1])
     store.add(None, uv[2])
     enabled, mode, text = state()
-    assert not enabled and mode == "unnamed" and "at least 3 X-ray clicks, named or not (now 2)" in text
+    assert not enabled and mode == "unnamed" and "only 2 X-ray click(s): click the centres of at least 3" in text
     store.add(None, uv[3])
     enabled, mode, text = state()
     assert enabled and mode == "unnamed" and "3 unnamed X-ray clicks" in text
     # two named clicks alone are not enough, as before
     store.replace_all(["T12", "L1"], uv[1:3], undoable=False)
     enabled, mode, text = state()
-    assert not enabled and mode == "named" and "now 2: T12, L1" in text
+    assert not enabled and mode == "named" and "only 2 level(s) (T12, L1)" in text
     store.add(None, uv[3])
     enabled, mode, text = state()
     assert enabled and mode == "partly_named" and "2 named (T12, L1) and 1 unnamed" in text
@@ -205,12 +205,12 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
     # three named clicks of which only two have a CT centroid: leaving them unnamed is offered
     store.rename(store.find("L2").id, "L5")
     enabled, mode, text = state()
-    assert not enabled and "now 2: T12, L1), or X-ray clicks left unnamed" in text
+    assert not enabled and "only 2 level(s) (T12, L1)" in text and "or leave the X-ray clicks unnamed" in text
     # the CT centroids stay required (named, at least 3) in every mode
     store.replace_all([None, None, None], uv[1:4], undoable=False)
     win.ct_store.replace_all(["T11", "T12"], synthetic_case.centroids_lps_mm[:2], undoable=False)
     enabled, mode, text = state()
-    assert not enabled and "at least 3 named CT centroids (now 2)" in text
+    assert not enabled and "only 2 CT centroid(s)" in text
     store.replace_all([], [], undoable=False)
     assert not panel.run_button.isEnabled()
 

@@ -14,7 +14,7 @@ from carmreg.logic.geometry.vertebrae import CARMREG_VERTEBRAE, centroids_from_l
 from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
 from carmreg.logic.io.volumes import load_volume
 from carmreg.logic.io.xray import load_xray
-from carmreg.logic.simulation.simulator import IntensifierDistortion
+from carmreg.logic.simulation.detector import IntensifierDistortion
 
 LEVELS = [f"T{i}" for i in range(1, 13)] + ["L1"]
 

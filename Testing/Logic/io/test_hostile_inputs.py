@@ -27,13 +27,14 @@ import pytest
 from carmreg.logic.errors import CarmRegError, GeometryError, InputFileError, RegistrationError, quote
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.io import array_cache
+from carmreg.logic.io.array_cache import sweep_cache
 from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
 from carmreg.logic.io.session import load_session
 from carmreg.logic.io.transaction import MANIFEST, FolderTransaction, check_writable_folder, read_manifest
 from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
 from carmreg.logic.io.xray import load_xray, write_xray_dicom
-from carmreg.logic.registration import database as db_module
-from carmreg.logic.registration.database import build_database, check_database_size, grid, sweep_cache
+from carmreg.logic.registration.database import build_database, check_database_size, grid
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 
 MiB = 1024**2
@@ -104,6 +105,31 @@ def test_metaimage_compressed_bomb_and_trailing_bytes(tmp_path):
     with bounded():
         loaded = load_volume(tail)
     assert np.array_equal(loaded.hu, ct.hu)
+
+
+def test_a_header_announcing_gigabytes_over_a_tiny_payload_is_refused_before_allocating(tmp_path):
+    """A legal-size header (1000^3 int16 = 2 GB, under the 8 GiB limit) over 1 kB of voxels: refused as
+    truncated before any buffer of the announced size exists (raw NRRD, MetaImage LOCAL, .nii, .nii.gz)."""
+    import nibabel as nib
+
+    sizes = (1000, 1000, 1000)
+    raw = tmp_path / "big.nrrd"
+    raw.write_bytes(_nrrd_header(sizes, "raw") + bytes(1024))
+    mha = tmp_path / "big.mha"
+    mha.write_bytes(b"ObjectType = Image\nNDims = 3\nDimSize = 1000 1000 1000\nElementSpacing = 0.5 0.5 0.5\n"
+                    b"Offset = 0 0 0\nElementType = MET_SHORT\nElementDataFile = LOCAL\n" + bytes(1024))
+    header = nib.Nifti1Image(np.zeros((2, 2, 2), np.int16), np.eye(4)).header.copy()
+    header.set_data_shape(sizes)
+    nii = tmp_path / "big.nii"
+    with open(nii, "wb") as handle:
+        header.write_to(handle)
+        handle.write(bytes(int(header["vox_offset"]) - handle.tell() + 1024))
+    niigz = tmp_path / "big.nii.gz"
+    niigz.write_bytes(gzip.compress(nii.read_bytes()))
+    for path in (raw, mha, nii, niigz):
+        with bounded(), pytest.raises(InputFileError, match=rf"{path.name}: .*(holds|inflates to) \d+ bytes.* "
+                                      r"header needs \d+.*truncated"):
+            load_volume(path)
 
 
 # ------------------------------------------------------------------------------ regular files only, no hang
@@ -218,7 +244,7 @@ def test_cache_is_capped_and_stale_temporary_files_are_swept(tmp_path, monkeypat
         data.with_suffix(".json").write_text("{}")
         os.utime(data, (old + i, old + i))
         dbs.append(data)
-    monkeypatch.setattr(db_module, "MAX_CACHE_BYTES", 2500)
+    monkeypatch.setattr(array_cache, "MAX_CACHE_BYTES", 2500)
     deleted = sweep_cache(tmp_path, room_bytes=1000)
     assert stale in deleted and fresh.exists()
     assert [p.exists() for p in dbs] == [False, False, True]

@@ -9,8 +9,8 @@ from carmreg.logic.geometry.volume import (
     MU_WATER_PER_MM,
     MuPyramid,
     Volume,
+    apply_affine,
     hu_to_mu,
-    ijk_to_points,
     resample_isotropic,
 )
 
@@ -42,7 +42,7 @@ def blob_volume(affine, shape=(60, 50, 24), centre_ijk=(33.3, 21.7, 11.4), sigma
 def world_centroid(values, affine):
     ijk = np.stack(np.meshgrid(*[np.arange(n) for n in values.shape], indexing="ij"), -1).reshape(-1, 3)
     w = values.reshape(-1).astype(np.float64)
-    return ijk_to_points(affine, (ijk * w[:, None]).sum(0) / w.sum())
+    return apply_affine(affine, (ijk * w[:, None]).sum(0) / w.sum())
 
 
 @pytest.mark.parametrize("spacing_mm", [2.0, 4.0])
@@ -83,6 +83,28 @@ def test_pyramid_caches_levels():
     assert pyramid.level(2.0) is not coarse
 
 
+def test_pyramid_levels_kept_in_the_cache_are_the_levels_bit_for_bit(tmp_path):
+    """A second run takes the resampled level from the cache folder: the same voxels and affine, exactly; a
+    damaged cache entry is a miss (resampled again), never trusted."""
+    from carmreg.logic.io.array_cache import ArrayCache
+
+    affine = oblique_affine()
+    volume = Volume(blob_volume(affine) - 1000.0, affine)
+    first = MuPyramid(volume, cache=ArrayCache(tmp_path)).level(3.0)
+    entries = sorted(tmp_path.glob("mu-*.npy"))
+    assert len(entries) == 1
+    again = MuPyramid(volume, cache=ArrayCache(tmp_path)).level(3.0)
+    assert np.array_equal(again.mu_per_mm, first.mu_per_mm) and np.array_equal(again.ijk_to_lps, first.ijk_to_lps)
+    assert again.mu_per_mm.flags.c_contiguous and again.mu_per_mm.flags.writeable
+    data = np.load(entries[0])
+    data.flat[0] += 1.0
+    np.save(entries[0], data)  # the sidecar's SHA-256 no longer matches
+    repaired = MuPyramid(volume, cache=ArrayCache(tmp_path)).level(3.0)
+    assert np.array_equal(repaired.mu_per_mm, first.mu_per_mm)
+    other = MuPyramid(Volume(volume.hu + 1.0, affine), cache=ArrayCache(tmp_path)).level(3.0)
+    assert not np.array_equal(other.mu_per_mm, first.mu_per_mm)  # another CT: another key
+
+
 def test_volume_rejects_bad_geometry():
     with pytest.raises(InputFileError):
         Volume(np.zeros((4, 4), np.float32), np.eye(4))
@@ -98,7 +120,7 @@ def test_volume_centre_and_containment():
     affine = oblique_affine()
     volume = Volume(np.zeros((10, 20, 30), np.float32), affine)
     centre = volume.center_lps_mm()
-    assert np.allclose(centre, ijk_to_points(affine, [4.5, 9.5, 14.5]))
+    assert np.allclose(centre, apply_affine(affine, [4.5, 9.5, 14.5]))
     assert np.allclose(volume.corners_lps_mm().mean(0), centre)
-    outside = ijk_to_points(affine, [-3.0, 5.0, 5.0])
+    outside = apply_affine(affine, [-3.0, 5.0, 5.0])
     assert volume.contains_lps(np.array([centre, outside])).tolist() == [True, False]

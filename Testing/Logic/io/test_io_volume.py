@@ -13,7 +13,7 @@ import pydicom
 import pytest
 
 from carmreg.logic.errors import InputFileError
-from carmreg.logic.geometry.volume import Volume, ijk_to_points
+from carmreg.logic.geometry.volume import Volume, apply_affine
 from carmreg.logic.io import volume_checks
 from carmreg.logic.io.transforms import LPS_FROM_RAS
 from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
@@ -27,11 +27,11 @@ def assert_same_world_image(a: Volume, b: Volume, atol_mm: float = 1e-3) -> None
     perm = np.round(m[:3, :3])
     assert np.allclose(m[:3, :3], perm, atol=1e-6) and np.allclose(np.abs(perm).sum(0), 1)
     corners = np.array([[0, 0, 0], np.array(a.shape) - 1])
-    b_corners = ijk_to_points(m, corners)
+    b_corners = apply_affine(m, corners)
     assert np.allclose(b_corners, np.round(b_corners), atol=atol_mm / min(b.spacing_mm))
     n = np.array(a.shape)
     ijk = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
-    jk = np.round(ijk_to_points(m, ijk)).astype(int)
+    jk = np.round(apply_affine(m, ijk)).astype(int)
     np.testing.assert_array_equal(a.hu.reshape(-1), b.hu[jk[:, 0], jk[:, 1], jk[:, 2]])
 
 
@@ -275,8 +275,8 @@ def test_dicom_series_oblique_round_trip(tmp_path, oblique_volume):
     np.testing.assert_allclose(back.ijk_to_lps, oblique_volume.ijk_to_lps, atol=1e-6)
     np.testing.assert_array_equal(back.hu, oblique_volume.hu)
     points = np.array([[0, 0, 0], [23, 19, 8], [5, 11, 3]])
-    np.testing.assert_allclose(ijk_to_points(back.ijk_to_lps, points),
-                               ijk_to_points(oblique_volume.ijk_to_lps, points), atol=1e-6)
+    np.testing.assert_allclose(apply_affine(back.ijk_to_lps, points),
+                               apply_affine(oblique_volume.ijk_to_lps, points), atol=1e-6)
 
 
 def test_dicom_series_left_handed_volume_reads_back_in_world(tmp_path, oblique_volume):

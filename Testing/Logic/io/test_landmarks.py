@@ -182,26 +182,26 @@ def test_2d_malformed_control_points_are_input_errors(tmp_path):
 
 def test_pair_by_label_not_by_index():
     xray = Landmarks2D(["L1", "T11", "T12"], [[30.0, 300.0], [10.0, 100.0], [20.0, 200.0]])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # CT-only levels (L2) are normal: no warning
-        pairs = pair_by_label(CT, xray)
-    assert pairs.labels == ["T11", "T12", "L1"] and pairs.warnings == []
+    pairs = pair_by_label(CT, xray)
+    assert pairs.labels == ["T11", "T12", "L1"] and pairs.notes == []  # CT-only levels (L2) are normal: no note
     np.testing.assert_array_equal(pairs.uv_px, [[10.0, 100.0], [20.0, 200.0], [30.0, 300.0]])
     np.testing.assert_array_equal(pairs.points_lps_mm, CT.points_lps_mm[:3])
 
 
-def test_pair_by_label_warns_about_xray_only_levels():
+def test_pair_by_label_notes_xray_only_levels():
     xray = Landmarks2D(["T10", "T11", "T12", "L1", None], [[0, 50], [10, 100], [20, 200], [30, 300], [5, 5]])
-    with pytest.warns(UserWarning, match="X-ray levels T10 have no CT centroid"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # notes are data, never Python warnings (the GUI runs this on a thread)
         pairs = pair_by_label(CT, xray)
-    assert pairs.labels == ["T11", "T12", "L1"] and len(pairs.warnings) == 1
+    assert pairs.labels == ["T11", "T12", "L1"]
+    assert pairs.notes == ["X-ray levels T10 have no CT centroid and are not used"]
 
 
 def test_pair_by_label_needs_enough_common_levels():
     xray = Landmarks2D(["T12", "L1", "L4"], [[0, 0], [1, 1], [2, 2]])
     with pytest.raises(LandmarkError, match=r"only 2 level\(s\) \(T12, L1\).*at least 3"):
         pair_by_label(CT, xray)
-    with pytest.warns(UserWarning, match="L4"):
-        assert pair_by_label(CT, xray, minimum=2).labels == ["T12", "L1"]
+    pairs = pair_by_label(CT, xray, minimum=2)
+    assert pairs.labels == ["T12", "L1"] and any("L4" in n for n in pairs.notes)
     with pytest.raises(LandmarkError, match="none"):
         pair_by_label(CT, Landmarks2D([None, None, None], [[0, 0], [1, 1], [2, 2]]))

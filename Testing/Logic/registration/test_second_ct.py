@@ -21,10 +21,10 @@ from carmreg.logic.geometry.vertebrae import (
     spine_slab_planes,
     summarize_labels,
 )
-from carmreg.logic.geometry.volume import Volume, ijk_to_points
+from carmreg.logic.geometry.volume import Volume, apply_affine
 from carmreg.logic.io.landmarks import Landmarks3D, level_index
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 SHARED = REPO.parent / "shared"
 TOTALSEG = SHARED / "data" / "totalsegmentator-tests"
 
@@ -42,7 +42,7 @@ def two_block_volume(affine: np.ndarray, shape=(40, 40, 60)) -> tuple[Volume, di
     """Soft tissue (40 HU) with bone blocks (600 HU, 20 mm cubes) at LPS z = +20 and -20 mm on the z axis,
     plus single bone voxels at chosen places; voxels are filled by their LPS centre (any affine)."""
     ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
-    x = ijk_to_points(affine, ijk.astype(float))
+    x = apply_affine(affine, ijk.astype(float))
     hu = np.full(len(x), 40.0, np.float32)
     for zc in (20.0, -20.0):
         hu[np.all(np.abs(x - (0.0, 0.0, zc)) <= 10.0, axis=1)] = 600.0
@@ -82,7 +82,7 @@ def test_radius_end_slabs_and_threshold():
     to_ijk = np.linalg.inv(affine)
     index = {}
     for name, p in probes.items():
-        ijk = ijk_to_points(to_ijk, np.array([p]))[0]
+        ijk = apply_affine(to_ijk, np.array([p]))[0]
         assert np.allclose(ijk, np.round(ijk))
         index[name] = tuple(int(v) for v in np.round(ijk))
         ct.hu[index[name]] = 400.0
@@ -147,7 +147,7 @@ def test_committed_centroids_in_bone_and_evenly_spaced(second_ct):
     ct, _, centroids = second_ct
     assert centroids.labels == ["L1", "L2", "L3", "L4", "L5", "S1"]
     ijk = np.argwhere(np.ones(ct.shape, bool))
-    x = ijk_to_points(ct.ijk_to_lps, ijk.astype(float))
+    x = apply_affine(ct.ijk_to_lps, ijk.astype(float))
     hu = ct.hu.reshape(-1)
     for name, c in centroids.as_dict().items():
         near = np.linalg.norm(x - c, axis=1) < 20.0
@@ -188,13 +188,9 @@ def test_names_agree_with_example_seg(second_ct):
 
 
 def test_simulated_image_of_second_ct_shows_several_levels(second_ct):
-    from carmreg.logic.simulation.simulator import (
-        SimulationOptions,
-        default_geometry,
-        random_pose,
-        sample_options,
-        simulate_case,
-    )
+    from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+    from carmreg.logic.simulation.scene import random_pose
+    from carmreg.logic.simulation.simulator import simulate_case
 
     ct, labels, centroids = second_ct
     rng = np.random.default_rng(1000)

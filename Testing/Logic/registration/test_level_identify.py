@@ -20,13 +20,9 @@ from carmreg.logic.registration.level_confidence import ConfidenceRule, decide, 
 from carmreg.logic.registration.levels import central_level, spatial_peaks, visible_levels
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.simulation.evaluation import evaluate
-from carmreg.logic.simulation.simulator import (
-    SimulationOptions,
-    default_geometry,
-    random_pose,
-    sample_options,
-    simulate_case,
-)
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+from carmreg.logic.simulation.scene import random_pose
+from carmreg.logic.simulation.simulator import simulate_case
 
 CT_NAMES = ["T9", "T10", "T11", "T12", "L1"]
 

@@ -26,9 +26,9 @@ from carmreg.logic.geometry.camera import (
     project,
     rotation_matrix,
 )
-from carmreg.logic.geometry.volume import MuLevel, hu_to_mu, ijk_to_points
+from carmreg.logic.geometry.volume import MuLevel, apply_affine, hu_to_mu
 
-SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+SHARED = Path(__file__).resolve().parents[3].parent / "shared"
 REAL_CT = SHARED / "data" / "totalsegmentator-tests" / "example_ct_sm.nii.gz"
 
 
@@ -70,7 +70,7 @@ def affine_from(direction, spacing, origin):
 def centred_affine(shape, spacing, direction=None, centre=(0.0, 0.0, 0.0)):
     """Affine whose voxel-grid centre sits at ``centre`` (LPS mm)."""
     affine = affine_from(np.eye(3) if direction is None else direction, spacing, (0.0, 0.0, 0.0))
-    affine[:3, 3] = np.asarray(centre) - ijk_to_points(affine, (np.asarray(shape) - 1) / 2.0)
+    affine[:3, 3] = np.asarray(centre) - apply_affine(affine, (np.asarray(shape) - 1) / 2.0)
     return affine
 
 
@@ -80,7 +80,7 @@ def pixel_rays_ijk(level, geometry, pose, uv_px, intrinsics=None):
     source = g.source_lps_mm(pose)
     pixels = pixel_to_detector_lps(g, pose, np.atleast_2d(uv_px))
     to_ijk = np.linalg.inv(level.ijk_to_lps)
-    return (ijk_to_points(to_ijk, source), ijk_to_points(to_ijk, pixels),
+    return (apply_affine(to_ijk, source), apply_affine(to_ijk, pixels),
             np.linalg.norm(pixels - source, axis=1))
 
 
@@ -124,7 +124,7 @@ def gaussian_bead_level(centre_lps, sigma_mm=1.2, size=64, spacing=0.4):
     affine = centred_affine(shape, (spacing,) * 3, direction=rotation_matrix([1, 2, 2], 20.0),
                             centre=centre_lps + np.array([1.3, -0.7, 0.9]))
     ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
-    r2 = ((ijk_to_points(affine, ijk) - centre_lps) ** 2).sum(-1)
+    r2 = ((apply_affine(affine, ijk) - centre_lps) ** 2).sum(-1)
     return MuLevel(np.ascontiguousarray(0.5 * np.exp(-0.5 * r2 / sigma_mm**2), dtype=np.float32), affine, None)
 
 
@@ -140,7 +140,7 @@ def real_ct_level():
 
 def ct_geometry(level, size=64, detector_mm=300.0):
     shape = np.array(level.mu_per_mm.shape)
-    centre = ijk_to_points(level.ijk_to_lps, (shape - 1) / 2.0)
+    centre = apply_affine(level.ijk_to_lps, (shape - 1) / 2.0)
     intr = CarmIntrinsics(1020.0, (detector_mm / size,) * 2, (size, size))
     return CarmGeometry(intr, tuple(centre), 600.0)
 
@@ -180,7 +180,7 @@ def test_single_voxel_bead_hits_the_predicted_pixel(name):
     bead_ijk = (17, 13, 16)
     mu[bead_ijk] = 5.0
     level = MuLevel(mu, affine, None)
-    bead_lps = ijk_to_points(affine, bead_ijk)
+    bead_lps = apply_affine(affine, bead_ijk)
     intr = CarmIntrinsics(1000.0, (0.5, 0.5), (60, 60), principal_point_px=(28.0, 31.0))
     geometry = CarmGeometry(intr, (0.0, 0.0, 0.0), 700.0)
     poses = (CarmPose(), CarmPose(20.0, -6.0, 0.0, 5.0, -8.0, 20.0), CarmPose(-30.0, -13.0, -3.0, -10.0, 6.0, -35.0))
@@ -207,7 +207,7 @@ def slab_case():
     mu[:, 5:25, :] = 0.02
     affine = centred_affine(shape, (1.0, 1.0, 1.0))
     level = MuLevel(mu, affine, None)
-    y_front = ijk_to_points(affine, [0, 4.5, 0])[1]
+    y_front = apply_affine(affine, [0, 4.5, 0])[1]
     intr = CarmIntrinsics(1000.0, (2.0, 2.0), (48, 40), principal_point_px=(20.0, 22.0))
     geometry = CarmGeometry(intr, (0.0, 0.0, 0.0), 600.0)
     return level, geometry, y_front
@@ -255,7 +255,7 @@ def phantom_mu(points_lps):
 
 def sampled_phantom(shape, affine):
     ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
-    return MuLevel(np.ascontiguousarray(phantom_mu(ijk_to_points(affine, ijk))), affine, None)
+    return MuLevel(np.ascontiguousarray(phantom_mu(apply_affine(affine, ijk))), affine, None)
 
 
 ORIENTATION_POSES = [CarmPose(), CarmPose(10.0, 4.0, -6.0, 5.0, 12.0, -20.0)]

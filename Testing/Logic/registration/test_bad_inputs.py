@@ -524,3 +524,4 @@ def test_unwritable_cache_only_loses_the_cache(tiny_db_inputs, reference_db, tmp
         (cache_dir / max(files, key=lambda n: len(files[n]))).mkdir()
     rebuilt = build_database(*tiny_db_inputs, 0.0, cache_dir)
     np.testing.assert_array_equal(rebuilt.drrs, db.drrs)
+    assert len(rebuilt.notes) == 1 and "could not write the DRR database cache" in rebuilt.notes[0]

@@ -16,7 +16,7 @@ from carmreg.logic.geometry.vertebrae import (
     superior_axis,
     to_carmreg_labels,
 )
-from carmreg.logic.geometry.volume import ijk_to_points
+from carmreg.logic.geometry.volume import apply_affine
 from carmreg.logic.io.landmarks import LEVEL_NAMES
 
 
@@ -52,8 +52,8 @@ def test_centroid_is_centre_of_mass_through_oblique_affine():
     labels[10, 12, 14] = 0               # make L1 asymmetric
     lm = centroids_from_labels(labels, affine, CARMREG_VERTEBRAE)
     assert lm.labels == ["T12", "L1"]
-    expected_t12 = ijk_to_points(affine, np.array([6.0, 6.0, 6.0]))
-    expected_l1 = ijk_to_points(affine, np.argwhere(labels == 21).mean(axis=0))
+    expected_t12 = apply_affine(affine, np.array([6.0, 6.0, 6.0]))
+    expected_l1 = apply_affine(affine, np.argwhere(labels == 21).mean(axis=0))
     np.testing.assert_allclose(lm.points_lps_mm, [expected_t12, expected_l1], atol=1e-9)
 
 

@@ -20,20 +20,11 @@ from carmreg.logic.geometry.vertebrae import (
 )
 from carmreg.logic.geometry.volume import MuLevel, Volume, hu_to_mu
 from carmreg.logic.io.landmarks import Landmarks3D, read_landmarks_2d, read_landmarks_3d
-from carmreg.logic.simulation.simulator import (
-    IntensifierDistortion,
-    Kwire,
-    LevelMotion,
-    SimulationOptions,
-    default_geometry,
-    kwire_path_lengths,
-    random_pose,
-    refine_thick_slices,
-    render_moved_anatomy,
-    sample_options,
-    simulate_case,
-    write_simulated_case,
-)
+from carmreg.logic.simulation.detector import IntensifierDistortion
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+from carmreg.logic.simulation.render import refine_thick_slices, render_moved_anatomy
+from carmreg.logic.simulation.scene import Kwire, LevelMotion, kwire_path_lengths, random_pose
+from carmreg.logic.simulation.simulator import simulate_case, write_simulated_case
 
 SMALL = dict(size_px=(256, 256), pixel_spacing_mm=1.0)
 """A 256 mm detector at 1 mm pixels: the 230 mm field fits, renders in a fraction of a second."""
@@ -321,9 +312,9 @@ def test_bad_inputs_raise_actionable_errors(beads):
 def test_run_cli_on_user_files_with_totalsegmentator_labels(beads, tmp_path, capsys):
     import argparse
 
+    from carmreg.cli_simulate import run_cli
     from carmreg.logic.geometry.vertebrae import TOTALSEGMENTATOR_V2_VERTEBRAE
     from carmreg.logic.io.volumes import write_volume_nrrd
-    from carmreg.logic.simulation.simulator import run_cli
 
     volume, labels, centroids = beads
     to_ts = {carmreg_label_value(n): v for v, n in TOTALSEGMENTATOR_V2_VERTEBRAE.items()}

@@ -12,13 +12,9 @@ from carmreg.logic.image.field import field_mask
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
-from carmreg.logic.simulation.simulator import (
-    SimulationOptions,
-    default_geometry,
-    random_pose,
-    sample_options,
-    simulate_case,
-)
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+from carmreg.logic.simulation.scene import random_pose
+from carmreg.logic.simulation.simulator import simulate_case
 
 
 def test_rank_image_is_the_same_for_any_increasing_storage():

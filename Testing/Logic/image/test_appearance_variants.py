@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
 
 import appearance as app  # noqa: E402
 

@@ -15,13 +15,9 @@ from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import STAGES, CarmRegLogic, RegistrationParameters
 from carmreg.logic.report.result_files import save_result
 from carmreg.logic.simulation.evaluation import evaluate
-from carmreg.logic.simulation.simulator import (
-    SimulationOptions,
-    default_geometry,
-    random_pose,
-    sample_options,
-    simulate_case,
-)
+from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
+from carmreg.logic.simulation.scene import random_pose
+from carmreg.logic.simulation.simulator import simulate_case
 
 pytestmark = pytest.mark.slow
 

@@ -1,0 +1,224 @@
+"""The window's data: loading the CT and the X-ray (with geometry overrides), the sample case, and the CT and
+X-ray centroids (import, export, proposal from a vertebra label map, spine-order check). A mixin of
+``CarmRegWidget``; every computation is a call into the logic."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.io import session as session_io
+from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d, write_landmarks_2d, write_landmarks_3d
+
+LOG = logging.getLogger("carmreg.gui")
+SCREENSHOT_VIEWS = ("window", "axial", "coronal", "sagittal", "ct", "xray", "overlay", "3d", "result")
+
+
+class WindowData:
+    """Mixin of CarmRegWidget: the data and the landmarks."""
+
+    # =========================================================================================== data
+    def load_ct(self, path: str | Path) -> None:
+        """Load a CT through ``carmreg.logic.io.volumes.load_volume`` (raises CarmRegError on bad input)."""
+        from carmreg.logic.io.volumes import load_volume
+
+        self._busy(f"Loading CT {Path(path).name}...")
+        try:
+            volume = load_volume(path)
+        finally:
+            self._idle()
+        self.set_ct_volume(volume, str(path))
+
+    def set_ct_volume(self, volume, path: str | None = None) -> None:
+        self.ct_volume, self.ct_path = volume, path
+        for view in self.slice_views:
+            view.set_volume(volume)
+        self._busy("Building the bone surface for the 3D view...")
+        try:
+            self.view3d.set_volume(volume)
+            self.view3d_result.set_volume(volume, surface=self.view3d.surface())
+        finally:
+            self._idle()
+        self._update_3d_points()
+        if volume is not None:
+            n = volume.shape
+            sp = volume.spacing_mm
+            self.ct_info.setText(f"{Path(path).name if path else 'CT (in memory)'}<br>"
+                                 f"{n[0]} x {n[1]} x {n[2]} voxels, {sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f} mm<br>"
+                                 f"HU {float(np.min(volume.hu)):.0f} to {float(np.max(volume.hu)):.0f}")
+        else:
+            self.ct_info.setText("No CT loaded")
+        self._inputs_changed()
+
+    def load_xray(self, path: str | Path, overrides: dict | None = None) -> None:
+        """Load an X-ray (``carmreg.logic.io.xray.load_xray``) with the geometry overrides (raises CarmRegError)."""
+        from carmreg.logic.io.xray import load_xray
+
+        overrides = dict(self.geometry_overrides if overrides is None else overrides)
+        xray = load_xray(path, **_geometry_kwargs(overrides))
+        self.set_xray_image(xray, str(path), overrides)
+
+    def set_xray_image(self, xray, path: str | None = None, overrides: dict | None = None) -> None:
+        first = self.xray is None or self.xray_path != path
+        self.xray, self.xray_path = xray, path
+        self.geometry_overrides = dict(overrides or {})
+        if first or xray is None:
+            self.xray_view.set_pixels(None if xray is None else xray.pixels)
+        intr = getattr(xray, "intrinsics", None)
+        self.xray_view.pixel_spacing_mm = intr.pixel_spacing_mm if intr else None
+        self.geometry_panel.set_xray(xray, self.geometry_overrides)
+        if xray is not None:
+            cols, rows = xray.size_px
+            modality = xray.meta.get("modality", "") if isinstance(xray.meta, dict) else ""
+            geometry = (f"SDD {intr.sdd_mm:.0f} mm, {intr.pixel_spacing_mm[0]:.3f} mm pixels"
+                        if intr else "<span style='color:#ffa94d'>geometry incomplete: see below</span>")
+            self.xray_info.setText(f"{Path(path).name if path else 'X-ray (in memory)'}  {modality}<br>"
+                                   f"{cols} x {rows} px, bone {'dark' if xray.bone_dark else 'bright'}<br>"
+                                   f"{geometry}")
+        else:
+            self.xray_info.setText("No X-ray loaded")
+        self._inputs_changed()
+
+    def apply_geometry(self, overrides: dict) -> None:
+        """Re-read the X-ray with new geometry overrides (the logic decides and records the sources)."""
+        if self.xray is None:
+            raise InputFileError("load an X-ray before setting its geometry")
+        if self.xray_path:
+            self.load_xray(self.xray_path, overrides)
+            return
+        from carmreg.logic.geometry.camera import (
+            CarmIntrinsics,  # in-memory image (tests, scripts): same rules, no file
+        )
+
+        intr = self.xray.intrinsics
+        kw = _geometry_kwargs(overrides)
+        spacing = kw.get("pixel_spacing_mm") or (intr.pixel_spacing_mm if intr else None)
+        sdd = kw.get("sdd_mm") or (intr.sdd_mm if intr else None)
+        new_intr = None
+        if spacing is not None and sdd is not None:
+            new_intr = CarmIntrinsics(float(sdd), tuple(spacing), self.xray.size_px, kw.get("principal_point_px"),
+                                      sources={k: "manual" for k in kw})
+        xray = dataclasses.replace(self.xray, intrinsics=new_intr, sod_mm=kw.get("sod_mm", self.xray.sod_mm))
+        self.set_xray_image(xray, None, overrides)
+
+    def load_sample_case(self) -> None:
+        """Load the embedded sample: CT, X-ray (DICOM with geometry) and the centroids on both."""
+        from carmreg.logic.resources import sample_case
+
+        paths = sample_case()
+        self.new_session(ask=False)
+        self.load_ct(paths["ct"])
+        self.geometry_overrides = {}
+        self.load_xray(paths["xray"], {})
+        self.import_ct_landmarks(paths["ct_landmarks"], undoable=False)
+        self.import_xray_landmarks(paths["xray_landmarks"], undoable=False)
+        self.undo_stack.clear()
+        self._dirty = False
+        self._update_title()
+        self.statusBar().showMessage("Sample case loaded: CT, simulated C-arm X-ray and centroids on both", 8000)
+
+    # =========================================================================================== landmarks
+    def import_ct_landmarks(self, path: str | Path, undoable: bool = True) -> None:
+        marks = read_landmarks_3d(path)
+        self.ct_store.replace_all(marks.labels, marks.points_lps_mm, f"Import {Path(path).name}", undoable)
+
+    def import_xray_landmarks(self, path: str | Path, undoable: bool = True) -> None:
+        spacing = self.xray.intrinsics.pixel_spacing_mm if getattr(self.xray, "intrinsics", None) else None
+        marks = read_landmarks_2d(path, spacing)
+        self.xray_store.replace_all(marks.labels, marks.uv_px, f"Import {Path(path).name}", undoable)
+
+    def export_ct_landmarks(self, path: str | Path) -> Path:
+        marks = self.ct_store.to_landmarks()
+        if not marks.labels:
+            raise LandmarkError("there are no named CT centroids to export; place some first (step 2)")
+        return write_landmarks_3d(path, marks)
+
+    def export_xray_landmarks(self, path: str | Path) -> Path:
+        marks = self.xray_store.to_landmarks()
+        if not len(marks.labels):
+            raise LandmarkError("there are no X-ray centroids to export; place some first (step 3)")
+        spacing = self.xray.intrinsics.pixel_spacing_mm if getattr(self.xray, "intrinsics", None) else None
+        return write_landmarks_2d(path, marks, spacing)
+
+    def propose_centroids(self, label_map_path: str | Path, mode: str = "replace") -> list[str]:
+        """Centroids of the complete vertebrae of a label map on this CT (``carmreg.logic.geometry.vertebrae``)."""
+        from carmreg.logic.geometry.vertebrae import (
+            CARMREG_VERTEBRAE,
+            TOTALSEGMENTATOR_V2_VERTEBRAE,
+            centroids_from_labels,
+        )
+        from carmreg.logic.io.volumes import load_volume
+
+        labels_volume = load_volume(label_map_path)
+        labels = np.rint(np.asarray(labels_volume.hu, np.float32)).astype(np.int32)
+        convention = CARMREG_VERTEBRAE if labels.max() <= max(CARMREG_VERTEBRAE) else TOTALSEGMENTATOR_V2_VERTEBRAE
+        marks = centroids_from_labels(labels, labels_volume.ijk_to_lps, convention, source=str(label_map_path))
+        if mode == "add":
+            have = set(self.ct_store.labels())
+            existing = [(p.label, p.position) for p in self.ct_store.points()]
+            new = [(lb, p) for lb, p in zip(marks.labels, marks.points_lps_mm, strict=True) if lb not in have]
+            merged = existing + new
+            self.ct_store.replace_all([m[0] for m in merged], [m[1] for m in merged], "Add proposed centroids")
+        else:
+            self.ct_store.replace_all(marks.labels, marks.points_lps_mm, "Propose centroids from label map")
+        return list(marks.labels)
+
+    def set_place_mode(self, on: bool) -> None:
+        for panel in (self.ct_panel, self.xray_panel):
+            panel.place_check.setChecked(bool(on))
+        self.act_place.setChecked(bool(on))
+
+    def set_ct_window(self, name: str) -> None:
+        for view in self.slice_views:
+            view.set_window_preset(name)
+
+    def _landmarks_changed(self) -> None:
+        self._points3d_timer.start()
+        self._check_spine_order()
+        self._inputs_changed(reset_overlay=False)
+        if self.result is not None:
+            self.overlay_view.clicks = self.shown_clicks()
+            self.overlay_view.refresh_markers()
+        self._update_accept_names()
+
+    def _check_spine_order(self) -> None:
+        """Warn (not refuse) when the named points break the spine's order or spacing
+        (``io.landmarks.spine_order_warnings``): an "L2" placed above L1, a point in the wrong organ."""
+        from carmreg.logic.io.landmarks import spine_order_warnings
+
+        ct = self.ct_store.to_landmarks()
+        ct_notes = spine_order_warnings(ct) if len(ct.labels) >= 2 else []
+        xray = self.xray_store.to_landmarks()
+        named = [lb for lb in xray.labels if lb]
+        both = spine_order_warnings(ct, xray) if len(named) >= 2 and len(ct.labels) >= 2 else ct_notes
+        self.ct_panel.set_warnings(ct_notes)
+        self.xray_panel.set_warnings([w for w in both if w not in ct_notes])
+
+    def _ct_selected(self, point_id) -> None:
+        point = self.ct_store.get(point_id) if point_id is not None else None
+        if point is not None:
+            self._go_to(point.position)
+        self._points3d_timer.start()
+
+    def _go_to(self, lps) -> None:
+        for view in self.slice_views:
+            view.go_to(lps)
+
+    def _update_3d_points(self) -> None:
+        points = [(p.label, p.position) for p in self.ct_store.points() if p.label]
+        sel = self.ct_store.get(self.ct_store.selected) if self.ct_store.selected else None
+        self.view3d.set_points(points, sel.label if sel else None)
+
+
+def _geometry_kwargs(overrides: dict) -> dict:
+    """The override fields ``load_xray`` takes (presets and bookkeeping keys left out)."""
+    out = {}
+    for name in session_io.GEOMETRY_FIELDS:
+        value = overrides.get(name)
+        if value is not None:
+            out[name] = tuple(float(x) for x in value) if isinstance(value, (list, tuple)) else float(value)
+    return out

@@ -1,0 +1,92 @@
+"""The outcome of a registration (``build_result``): the final pose, every CT level projected on the X-ray (pixel
+(column, row), clicked levels with their projection distance in detector mm), the level check, and the checks
+that make ``ok`` False with the reason in words (``result_problems``).
+"""
+
+from __future__ import annotations
+
+from carmreg.logic.geometry.camera import CarmPose, in_detector, project
+from carmreg.logic.geometry.projection_distance import pde_mm
+from carmreg.logic.io.landmarks import level_index
+from carmreg.logic.registration.depth import tx_limits
+from carmreg.logic.registration.levels import (
+    LevelIdentification,
+)
+from carmreg.logic.registration.state import RegistrationResult, RegistrationState
+
+
+def build_result(state: RegistrationState) -> RegistrationResult:
+    """The registration's outcome from its state: pose, every CT level projected (clicked ones with their PDE),
+    the level check, and ``ok`` with the reasons when a check fails (``result_problems``)."""
+    pose = CarmPose.from_array(state.pose)
+    P = state.geometry.projection_matrix(pose)
+    fitted = set(state.pairs.labels) if state.pairs is not None else set()
+    clicked = dict(zip(state.pairs.labels, state.pairs.uv_px, strict=True)) if state.pairs is not None else {}
+    spacing = state.geometry.intrinsics.pixel_spacing_mm
+    named = name_margins(state.identification)
+    levels = []
+    for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
+        uv = project(P, point[None])[0]
+        pde = float(pde_mm(P, point[None], clicked[label][None], spacing)[0]) if label in clicked else None
+        levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
+                       "pde_mm": pde, "in_image": in_detector(uv, state.geometry.intrinsics.size_px),
+                       "clicked_uv_px": [float(x) for x in clicked[label]] if label in clicked else None,
+                       "name_margin": named.get(label)})
+    problems = result_problems(state, pose)
+    spatial = state.spatial
+    return RegistrationResult(
+        pose=pose, projection_matrix=P, geometry=state.geometry, stages=list(state.stages), levels=levels,
+        drr_line_integral=state.drr_line_integral, xray_line_integral=state.xray_line_integral,
+        convergence=state.fine.convergence if state.fine else [],
+        trajectory=state.fine.trajectory if state.fine else [],
+        similarity_maps=spatial.maps if spatial else {},
+        database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
+        if state.database else {},
+        ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
+        level_check=state.identification.as_dict() if state.identification else None,
+        appearance=state.appearance, field_mask=state.mask,
+        inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
+                "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
+                "xray_frame": state.xray.meta.get("frame"),
+                "xray_frames_in_file": state.xray.meta.get("n_frames")})
+
+def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
+    """The pipeline's own sanity checks; any message here makes ``ok`` False."""
+    problems = []
+    p = state.parameters
+    image_only = state.identification is not None and state.identification.mode == "image_only"
+    if state.fine is None and not image_only:
+        problems.append("the fine stage did not run")
+    elif state.fine is not None and state.fine.mpde_mm > p.max_fine_mpde_mm:
+        problems.append(f"fine-stage mPDE {state.fine.mpde_mm:.1f} mm exceeds {p.max_fine_mpde_mm:.1f} mm: "
+                        "the landmarks do not agree with any rigid C-arm pose; check the level names")
+    mag = float(state.geometry.magnification(pose))
+    lo, hi = p.magnification_range
+    if not lo <= mag <= hi:
+        problems.append(f"magnification {mag:.2f} is outside the C-arm range {lo}-{hi}; check SDD, pixel "
+                        "spacing and the landmarks")
+    if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
+        problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
+    a = state.appearance
+    if a is not None and a.orientation != "as-stored":
+        best, stored = a.orientation_scores[a.orientation], a.orientation_scores["as-stored"]
+        problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
+                        f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
+                        "acquired (head up, patient's right on the viewer's left) and register again")
+    if state.identification is not None and state.identification.status == "contradicted":
+        problems.append(state.identification.message)
+    lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
+    if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:
+        problems.append("the found source-to-detector position is outside the searched range")
+    return problems
+
+
+def name_margins(ident: LevelIdentification | None) -> dict[str, float]:
+    """Per level named by the levels stage, how far its labelling is ahead of the best other one (every other
+    labelling renames every click, so it is the labelling's margin)."""
+    if ident is None:
+        return {}
+    labels = ident.visible_labels if ident.mode == "image_only" else ident.chosen.labels
+    return {lb: float(ident.margin) for lb in labels}
+
+

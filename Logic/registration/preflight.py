@@ -1,0 +1,141 @@
+"""What a registration needs before any stage runs, in words: one rule set for the command line, the window and
+the Slicer module.
+
+``preflight`` says what is missing as a list of sentences (empty = ready) and which level identification the
+clicks ask for (``click_mode``): ``named`` (every X-ray click named), ``partly_named``, ``unnamed`` or
+``image_only`` (no clicks). The window shows the sentences and enables Register; ``CarmRegLogic.prepare`` raises
+the first one as a ``LandmarkError`` (the command line's one line, exit code 2). The rules:
+
+- a CT, an X-ray and its geometry (source-to-detector distance, pixel spacing);
+- at least 3 named CT centroids;
+- named clicks: at least ``MIN_CLICKS`` levels named on both the CT and the X-ray (``pair_by_label``);
+- unnamed or partly named clicks: at least ``MIN_CLICKS`` of them, and a labelling of consecutive CT levels that
+  can carry them (``check_labelling_possible``); no clicks at all is valid (levels from the image alone).
+
+``check_landmarks`` then refuses points outside the CT or the image and coincident points (it needs the loaded
+CT and X-ray, so it runs in ``prepare``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carmreg.logic.errors import CarmRegError, LandmarkError
+from carmreg.logic.geometry.camera import in_detector
+from carmreg.logic.geometry.volume import Volume
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, pair_by_label, spine_order_warnings
+from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.labellings import check_labelling_possible, ct_level_names, identifiable_clicks
+
+MIN_CLICKS = 3
+"""X-ray clicks needed (named or not); zero clicks = the levels from the image alone."""
+MIN_CT_CENTROIDS = 3
+
+
+@dataclass
+class Readiness:
+    """``problems``: what is missing, one sentence each (empty = ready); ``mode``: see ``click_mode``;
+    ``common_levels``: the levels named on both the CT and the X-ray, head to sacrum."""
+
+    mode: str
+    problems: list[str] = field(default_factory=list)
+    common_levels: list[str] = field(default_factory=list)
+
+    @property
+    def ready(self) -> bool:
+        return not self.problems
+
+
+def click_mode(clicks: Landmarks2D) -> str:
+    """``image_only`` (no clicks), ``named`` (every click named), ``unnamed`` (none named) or ``partly_named``."""
+    n = len(clicks.labels)
+    unnamed = sum(lb is None for lb in clicks.labels)
+    if n == 0:
+        return "image_only"
+    if unnamed == 0:
+        return "named"
+    return "unnamed" if unnamed == n else "partly_named"
+
+
+def preflight(ct_landmarks: Landmarks3D, clicks: Landmarks2D, *, ct_loaded: bool = True, xray_loaded: bool = True,
+              geometry_known: bool = True) -> Readiness:
+    """What stops a registration of these inputs now, in words (module docstring)."""
+    mode = click_mode(clicks)
+    ct_names = ct_level_names(ct_landmarks)
+    readiness = Readiness(mode, common_levels=[lb for lb in ct_names if lb in set(clicks.labels)])
+    problems = readiness.problems
+    if not ct_loaded:
+        problems.append("no CT loaded: load the preoperative CT")
+    if not xray_loaded:
+        problems.append("no X-ray loaded: load the intraoperative X-ray")
+    elif not geometry_known:
+        problems.append("the X-ray geometry is incomplete: give the source-to-detector distance and the pixel "
+                        "spacing (or choose a device preset)")
+    if len(ct_names) < MIN_CT_CENTROIDS:
+        problems.append(f"only {len(ct_names)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: label at least "
+                        f"{MIN_CT_CENTROIDS} vertebrae in the CT")
+        return readiness
+    problem = _clicks_problem(ct_landmarks, clicks, mode)
+    if problem:
+        problems.append(problem)
+    return readiness
+
+
+def _clicks_problem(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -> str | None:
+    n = len(clicks.labels)
+    try:
+        if mode == "named":
+            pair_by_label(ct_landmarks, clicks, MIN_CLICKS)
+        elif mode != "image_only" and n < MIN_CLICKS:
+            return (f"only {n} X-ray click(s): click the centres of at least {MIN_CLICKS} adjacent vertebrae (named "
+                    "or not), or none to identify the levels from the image alone")
+        elif mode != "image_only":
+            check_labelling_possible(clicks, ct_level_names(ct_landmarks))
+    except LandmarkError as exc:
+        extra = ("; or leave the X-ray clicks unnamed for CarmReg to identify them"
+                 if mode == "named" and n >= MIN_CLICKS else "")
+        return str(exc) + extra
+    return None
+
+
+def require_ready(readiness: Readiness) -> None:
+    """Raise the first problem (``LandmarkError`` for clicks and centroids, else ``CarmRegError``)."""
+    if readiness.problems:
+        first = readiness.problems[0]
+        raise (LandmarkError if "click" in first or "centroid" in first or "level" in first else CarmRegError)(first)
+
+
+def given_pairs(ct_landmarks: Landmarks3D, clicks: Landmarks2D) -> tuple[Pairs | None, list[str]]:
+    """The clicks paired with the CT by name when every click is named, else None; and the plausibility notes
+    (levels on one side only, spine order). Call after ``preflight``."""
+    if click_mode(clicks) == "named":
+        pairs = pair_by_label(ct_landmarks, clicks, MIN_CLICKS)
+        return pairs, list(pairs.notes)
+    return None, spine_order_warnings(ct_landmarks)
+
+
+def check_landmarks(ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, clicks: Landmarks2D) -> None:
+    """Refuse points outside the CT or the image, and degenerate (coincident) point sets."""
+    outside = [lb for lb, inside in zip(ct_landmarks.labels, ct.contains_lps(ct_landmarks.points_lps_mm),
+                                        strict=True) if not inside]
+    if outside:
+        raise LandmarkError(f"CT landmark(s) {', '.join(outside)} in {ct_landmarks.source or 'the CT landmarks'} "
+                            f"lie outside the CT volume {ct.source}: check the landmark file's coordinate system "
+                            "(LPS vs RAS) and that it belongs to this CT")
+    cols, rows = xray.size_px
+    used = identifiable_clicks(clicks, ct_level_names(ct_landmarks))
+    uv_all = np.asarray(clicks.uv_px, float).reshape(-1, 2)[used]
+    off = [clicks.labels[i] or f"unnamed click {i + 1}" for i, uv in zip(used, uv_all, strict=True)
+           if not in_detector(uv, (cols, rows))]
+    if off:
+        raise LandmarkError(f"X-ray landmark(s) {', '.join(off)} lie outside the {cols}x{rows} image "
+                            f"{xray.source}: check they are (column, row) pixels of this X-ray")
+    for name, pts in (("CT", ct_landmarks.points_lps_mm), ("X-ray", uv_all)):
+        if len(pts) < 2:
+            continue
+        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
+        if d.min() < 1.0:
+            raise LandmarkError(f"two {name} landmarks are less than 1 {'mm' if name == 'CT' else 'px'} apart: "
+                                "each level needs its own centroid")

@@ -1,0 +1,174 @@
+"""What the stages share: the registration's parameters, its state filled stage by stage, each stage's result and
+the final ``RegistrationResult`` (pose, levels, level check, ``ok``). Stage order ``STAGES``; re-running a stage
+forgets its result and every later one (``drop_results_from``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carmreg.logic.geometry.camera import CarmGeometry, CarmPose
+from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.image.appearance import (
+    Appearance,
+    fixed_appearance,
+)
+from carmreg.logic.image.prepare import attenuation
+from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
+from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.database import DrrDatabase
+from carmreg.logic.registration.depth import DepthResult
+from carmreg.logic.registration.fine import FineParameters, FineResult
+from carmreg.logic.registration.image_refine import RefineParameters, RefineResult
+from carmreg.logic.registration.labelling_fit import LabellingFit, coarse_refine_parameters
+from carmreg.logic.registration.levels import (
+    IdentifyParameters,
+    LevelIdentification,
+)
+from carmreg.logic.registration.spatial import SpatialResult
+
+STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
+
+@dataclass
+class RegistrationParameters:
+    """Every choice of the pipeline, with the paper's value where it gives one."""
+
+    metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
+    polarity: str = "auto"                  # auto (found from the image) | bone-dark | bone-bright
+    all_metrics: bool = False               # also compute the other six maps (paper Fig. 6; ~7x the time)
+    coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
+    ty_half_range_mm: float = 50.0          # medio-lateral search +- (paper: 50)
+    tz_half_range_mm: float | None = None   # superior-inferior +-; None = cover every labelled CT level
+    grid_step_mm: float = 2.0               # database step (paper: 2 mm)
+    depth_far_mm: float = 400.0             # farthest source retreat (paper: 40-50 cm)
+    depth_step_mm: float = 10.0             # paper: 10 mm
+    fine: FineParameters = field(default_factory=FineParameters)
+    refine_coarse: RefineParameters = field(default_factory=coarse_refine_parameters)
+    refine: RefineParameters = field(default_factory=RefineParameters)
+    refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
+    level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
+    identify: IdentifyParameters = field(default_factory=IdentifyParameters)
+    final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
+    max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
+    magnification_range: tuple = (1.05, 3.0)
+    cache_dir: str | None = None
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class StageResult:
+    name: str
+    pose: CarmPose
+    mpde_mm: float | None
+    seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class RegistrationState:
+    """Everything the stages share; filled stage by stage."""
+
+    ct: Volume
+    ct_landmarks: Landmarks3D
+    xray: XrayImage
+    xray_landmarks: Landmarks2D
+    parameters: RegistrationParameters
+    geometry: CarmGeometry
+    pairs: Pairs | None                     # None until the levels stage names unnamed clicks (or no clicks)
+    pyramid: MuPyramid
+    xray_line_integral: np.ndarray
+    mask: np.ndarray
+    coarse_factor: int
+    database: DrrDatabase | None = None
+    spatial: SpatialResult | None = None
+    depth: DepthResult | None = None
+    fine: FineResult | None = None
+    refine: RefineResult | None = None
+    refined_pose: np.ndarray | None = None
+    identification: LevelIdentification | None = None
+    appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
+    known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
+    given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
+    drr_line_integral: np.ndarray | None = None
+    stages: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The best pose so far (6,)."""
+        if self.refined_pose is not None:
+            return self.refined_pose
+        if self.fine is not None:
+            return self.fine.pose
+        if self.depth is not None:
+            return np.array([self.depth.tx_mm, self.depth.ty_mm, self.depth.tz_mm, 0, 0, 0], float)
+        if self.identification is not None and self.identification.mode == "image_only":
+            return np.asarray(self.identification.winner.pose, float)
+        if self.spatial is not None:
+            return np.array([self.database.tx_mm, self.spatial.ty_mm, self.spatial.tz_mm, 0, 0, 0], float)
+        return np.zeros(6)
+
+
+@dataclass
+class RegistrationResult:
+    pose: CarmPose
+    projection_matrix: np.ndarray
+    geometry: CarmGeometry
+    stages: list
+    levels: list                    # [{"label", "uv_px", "fitted", "pde_mm", "in_image", "clicked_uv_px",
+    #                                  "name_margin"}] for every CT-labelled level
+    drr_line_integral: np.ndarray | None
+    xray_line_integral: np.ndarray
+    convergence: list
+    trajectory: list
+    similarity_maps: dict
+    database_grid: dict
+    ok: bool
+    warnings: list
+    parameters: RegistrationParameters
+    inputs: dict = field(default_factory=dict)
+    level_check: dict | None = None  # LevelIdentification.as_dict(): mode, status, margin, assigned_labels ...
+    appearance: Appearance | None = None  # the X-ray's polarity and storage, and the evidence
+    field_mask: np.ndarray | None = None  # (rows, cols) exposed field of the X-ray
+
+    @property
+    def magnification(self) -> float:
+        return float(self.geometry.magnification(self.pose))
+
+
+
+
+def drop_results_from(state: RegistrationState, name: str) -> None:
+    """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
+    later = STAGES[STAGES.index(name):]
+    fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
+              "refine": ("refine", "refined_pose"), "levels": ("identification",), "final_drr": ("drr_line_integral",)}
+    for stage in later:
+        for attribute in fields[stage]:
+            setattr(state, attribute, None)
+    if "levels" in later:  # the pairs the levels stage chose are its result too
+        state.pairs = state.given_pairs
+    if "spatial" in later:  # the polarity the spatial stage found, and the attenuation image built with it
+        state.appearance = initial_appearance(state.xray, state.parameters)
+        state.xray_line_integral = attenuation(state.xray.pixels, state.mask, state.appearance.bone_dark,
+                                               state.appearance.storage)
+    state.stages = [s for s in state.stages if s.name not in later]
+
+
+def chosen_fit(state: RegistrationState) -> LabellingFit | None:
+    """The levels stage's fit of the labelling the registration continues with (None without one)."""
+    ident = state.identification
+    if ident is None or ident.mode == "image_only" or state.pairs is None:
+        return None
+    fit = ident.chosen
+    return fit if fit.labels == list(state.pairs.labels) and fit.depth is not None else None
+
+
+def initial_appearance(xray: XrayImage, params: RegistrationParameters) -> Appearance:
+    """The appearance before the spatial stage finds it: the user's polarity, else the file's."""
+    return fixed_appearance(params.polarity, xray.bone_dark, xray.sources.get("bone_dark", ""))
