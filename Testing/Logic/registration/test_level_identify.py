@@ -1,6 +1,8 @@
 """Level identification: spine order of the clicks, the labellings tried, the decision rule, and the whole
 levels stage on simulated cases whose true levels are known (unnamed clicks, wrong names, no clicks)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ from carmreg.logic.registration.labellings import (
     order_along_spine,
     shifted_labels,
 )
-from carmreg.logic.registration.level_confidence import ConfidenceRule, decide, decide_image_only
+from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence, decide, decide_image_only, judge
 from carmreg.logic.registration.levels import central_level, spatial_peaks, visible_levels
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.simulation.evaluation import evaluate
@@ -126,6 +128,24 @@ def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous()
     v = decide([a, b], None, RULE, appearance_clear=False)
     assert v.status == "ambiguous" and "appearance" in v.reasons[0]
     assert decide([a, b], b, RULE, appearance_clear=False).status == "ambiguous"  # no contradiction either
+
+
+def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_them():
+    """The benchmark's calibration re-judges recorded runs (``Evidence.from_checks`` + ``judge``): it must give the
+    status ``decide`` gave, for every part of the rule, and follow a changed threshold."""
+    wrong, right = _h(["T9"], 0.646, gc=0.364, mpde_mm=3.19), _h(["T10"], 0.694, gc=0.316, mpde_mm=1.66)
+    cases = [([_h(["T10"], 0.50), _h(["T11"], 0.60)], None, {}), ([_h(["T10"], 0.50), _h(["T11"], 0.515)], None, {}),
+             ([_h(["T10"], 0.50, gc=0.15), _h(["T11"], 0.60)], None, {}), ([wrong, right], None, {}),
+             ([wrong, right], right, {}), ([_h(["T10"], 0.50), _h(["T11"], 0.60)], None, {"stable": False})]
+    for fits, given, flags in cases:
+        v = decide(fits, given, RULE, **flags)
+        recorded = json.loads(json.dumps(v.checks))  # as result.json stores them
+        assert judge(v.margin, Evidence.from_checks(recorded), RULE)[0] == v.status
+    v = decide([_h(["T10"], 0.50, gc=0.25), _h(["T11"], 0.60)], None, RULE)
+    assert v.status == "confident"
+    stricter = ConfidenceRule(min_similarity=0.30)
+    assert judge(v.margin, Evidence.from_checks(v.checks), stricter)[0] == "ambiguous"
+    assert judge(0.015, Evidence.from_checks(v.checks), ConfidenceRule(margin=0.01))[0] == "confident"
 
 
 def test_image_only_answers_are_at_best_proposed():
