@@ -229,11 +229,10 @@ def rgb_qimage(rgb_u8: np.ndarray) -> QtGui.QImage:
 
 
 def robust_range(image: np.ndarray, low_pct: float = 1.0, high_pct: float = 99.5) -> tuple[float, float]:
-    """Percentile range of an image (subsampled for speed)."""
-    flat = np.asarray(image, np.float32).ravel()
-    sample = flat[:: max(1, flat.size // 200_000)]
-    lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
-    return float(lo), float(hi if hi > lo else lo + 1.0)
+    """Percentile range of a whole image (``image.field.display_range`` without a field, clipped pixels kept)."""
+    from carmreg.logic.image.field import display_range
+
+    return display_range(image, None, (low_pct, high_pct), drop_clipped=False)
 
 
 def save_widget_png(widget: QtWidgets.QWidget, path) -> str:
