@@ -20,14 +20,10 @@ from qtpy import QtCore, QtGui, QtWidgets
 from carmreg.logic.errors import CancelledError, CarmRegError
 
 LOG = logging.getLogger("carmreg.gui")
-# level identification status -> colour (green sure, yellow proposed from the image alone, amber, red)
-STATUS_COLORS = {"confident": "#69db7c", "proposed": "#ffe066", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
+# the level answer's colours and the overlay's marker colours: carmreg.logic.report.style (one table)
 ACCENT = "#3fa7ff"
 POINT_COLOR = "#39d0ff"
 SELECTED_COLOR = "#ffd43b"
-FITTED_COLOR = "#40c057"
-CHECK_COLOR = "#ffd228"
-CLICK_COLOR = "#ff4d4d"
 
 
 # ---------------------------------------------------------------------------------------- application

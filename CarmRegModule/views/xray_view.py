@@ -13,8 +13,8 @@ import numpy as np
 from qtpy import QtCore, QtWidgets
 
 from carmreg.logic.io.landmarks import LEVEL_NAMES
+from carmreg.logic.report.style import status_ink
 
-from ..qt_common import STATUS_COLORS
 from .image_canvas import ImageCanvas, MarkerSpec
 
 ARROW = "\u2192"
@@ -51,7 +51,7 @@ class XrayView(ImageCanvas):
             spec.text = self.marker_text(spec.key)
             assigned = self.assigned.get(spec.key)
             if assigned and assigned != self.store.get(spec.key).label and spec.style != "selected":
-                spec.color = STATUS_COLORS.get(self.assigned_status)
+                spec.color = status_ink(self.assigned_status) if self.assigned_status else None
         return specs
 
     def _place(self, position: np.ndarray) -> None:

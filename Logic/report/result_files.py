@@ -11,10 +11,11 @@ Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.trans
   ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
   ``parameters``; ``reproducibility`` (versions, seed).
-- ``overlay.png``: the X-ray with the DRR's bone blended in cyan and every CT-labelled level's projected centroid
-  and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings;
-  a banner at the top states how the levels were named and how sure that is (green confident, yellow proposed
-  from the image alone, amber ambiguous, red contradicted).
+- ``overlay.png``: the overlay as the window shows it by default and the report page prints it
+  (``report.overlay``: the X-ray bone bright with the DRR blended in amber, every CT-labelled level projected and
+  named - fitted levels as filled green discs with their PDE, red with a "?" when the image contradicts the
+  names, the others as yellow rings, clicks as red crosses - and the level answer's banner across the top, in
+  the colours of ``report.style``), at the X-ray's size.
 - ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; a 3D one-slice volume on
   the detector plane in LPS: ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step
   along columns and rows, then the detector normal; it opens in 3D Slicer in place).
@@ -31,18 +32,18 @@ import platform
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image
 
 from carmreg.logic import __version__
 from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from carmreg.logic.io.transaction import FolderTransaction
+from carmreg.logic.report.overlay import overlay_image, result_bone_dark
+from carmreg.logic.report.style import hex_rgb, status_ink
 
-FITTED_RGB = (40, 220, 90)
-CLICK_RGB = (255, 60, 60)
-OTHER_RGB = (255, 210, 40)
-EDGE_RGB = np.array([0, 200, 255], float)
+__all__ = ["RESULT_FILES", "level_banner", "overlay_image", "result_dict", "save_png", "save_result", "to_uint8",
+           "write_drr_nrrd"]  # overlay_image: the 3D Slicer module draws its overlay node with it
 
 
 def result_dict(result) -> dict:
@@ -85,34 +86,13 @@ def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5
     return (np.clip((image - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
 
 
-def _font(size: int):
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:  # Pillow < 10.1
-        return ImageFont.load_default()
-
-
-def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float, mask: np.ndarray | None) -> np.ndarray:
-    """Blend the DRR's bone (its band-pass detail: 2-px blur minus 25-px blur, positive part) in cyan,
-    inside the X-ray's exposed field ``mask`` when given."""
-    from scipy import ndimage
-
-    scale = max(drr.shape) / 768.0
-    detail = ndimage.gaussian_filter(drr, 2.0 * scale) - ndimage.gaussian_filter(drr, 25.0 * scale)
-    alpha = np.clip(detail / max(np.percentile(detail, 99.5), 1e-9), 0, 1)[..., None] * strength
-    if mask is not None:
-        alpha = alpha * mask[..., None]
-    return rgb * (1 - alpha) + EDGE_RGB * alpha
-
-
-STATUS_RGB = {"confident": (40, 220, 90), "proposed": (255, 230, 60), "ambiguous": (255, 190, 0),
-              "contradicted": (255, 60, 60)}
 MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
              "image_only": "image alone (no clicks)"}
 
 
 def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] | None:
-    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up."""
+    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up, with
+    the status's colour on a dark background (``style.status_ink``) as (r, g, b)."""
     if not level_check:
         return None
     status = str(level_check.get("status", ""))
@@ -122,40 +102,7 @@ def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] |
     if margin is not None and np.isfinite(margin):
         text += f" (margin {margin:+.3f}"
         text += f" over {'-'.join([runner[0], runner[-1]]) if len(runner) > 1 else runner[0]})" if runner else ")"
-    return text, STATUS_RGB.get(status, (255, 255, 255))
-
-
-def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list,
-                  clicked: dict | None = None, edge_strength: float = 0.6,
-                  mask: np.ndarray | None = None, level_check: dict | None = None) -> Image.Image:
-    """RGB overlay: X-ray (as displayed) + DRR bone in cyan + projected, named centroids."""
-    gray = to_uint8(np.asarray(xray_pixels, float)).astype(float)
-    rgb = np.repeat(gray[..., None], 3, axis=2)
-    if drr_line_integral is not None:
-        rgb = _tint_bone(rgb, np.asarray(drr_line_integral, float), edge_strength, mask)
-    img = Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8))
-    draw = ImageDraw.Draw(img)
-    size = max(img.size)
-    r, font = max(4, size // 100), _font(max(12, size // 40))
-    for level in levels:
-        u, v = level["uv_px"]
-        if level["fitted"]:
-            draw.ellipse([u - r, v - r, u + r, v + r], fill=FITTED_RGB, outline=(0, 0, 0))
-        else:
-            draw.ellipse([u - r, v - r, u + r, v + r], outline=OTHER_RGB, width=max(2, r // 2))
-        colour = FITTED_RGB if level["fitted"] else OTHER_RGB
-        draw.text((u + 2 * r, v - r), level["label"], fill=colour, font=font, stroke_width=2,
-                  stroke_fill=(0, 0, 0))
-    for uv in (clicked or {}).values():
-        u, v = uv
-        draw.line([u - 2 * r, v, u + 2 * r, v], fill=CLICK_RGB, width=2)
-        draw.line([u, v - 2 * r, u, v + 2 * r], fill=CLICK_RGB, width=2)
-    banner = level_banner(level_check)
-    if banner is not None:
-        box = draw.textbbox((r, r), banner[0], font=font)
-        draw.rectangle([box[0] - r // 2, box[1] - r // 2, box[2] + r // 2, box[3] + r // 2], fill=(0, 0, 0))
-        draw.text((r, r), banner[0], fill=banner[1], font=font)
-    return img
+    return text, hex_rgb(status_ink(status))
 
 
 def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:
@@ -295,11 +242,12 @@ def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dic
     from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
+    mask = _field(result, xray_pixels, field_mask)
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
-             "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
-                                                                    result.levels, clicked,
-                                                                    mask=_field(result, xray_pixels, field_mask),
-                                                                    level_check=result.level_check))}
+             "overlay": save_png(out / "overlay.png", overlay_image(
+                 xray_pixels, result.drr_line_integral, result.levels, clicked, mask=mask,
+                 level_check=result.level_check, bone_dark=result_bone_dark(result), ok=bool(result.ok),
+                 warnings=list(result.warnings)))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
         paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,
