@@ -67,7 +67,7 @@ def _draw_level(ax, level: dict, marker, scale: float) -> None:
         ax.plot(u, v, "o", ms=5.5 * scale, color=marker.colour, mec="black", mew=0.6 * scale)
     else:
         ax.plot(u, v, "o", ms=7 * scale, mfc="none", mec=marker.colour, mew=1.4 * scale)
-    ax.annotate(marker.text, (u, v), xytext=(7 * scale, -3 * scale), textcoords="offset points",
+    ax.annotate(marker.text, (u, v), xytext=(9 * scale, -3 * scale), textcoords="offset points",
                 color=marker.colour, fontsize=LABEL_POINTS * scale, fontweight="bold",
                 bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55, "ec": "none"})
 

@@ -39,7 +39,7 @@ from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from carmreg.logic.io.transaction import FolderTransaction
-from carmreg.logic.report.overlay import overlay_image, result_bone_dark
+from carmreg.logic.report.overlay import overlay_image, result_overlay_image
 from carmreg.logic.report.style import hex_rgb, status_ink
 
 __all__ = ["RESULT_FILES", "level_banner", "overlay_image", "result_dict", "save_png", "save_result", "to_uint8",
@@ -212,12 +212,6 @@ RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm",
 """Every name ``save_result`` has written (an old folder's copies are replaced or removed, never kept)."""
 
 
-def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
-    """The registration's exposed field when it was of these pixels, else found again."""
-    mask = getattr(result, "field_mask", None)
-    return mask if mask is not None and mask.shape == np.shape(xray_pixels) else field_mask(xray_pixels)
-
-
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 ct=None, ct_landmarks=None) -> dict:
     """Write every output file as one transaction (``FolderTransaction``): ``out_dir`` then holds exactly this
@@ -239,15 +233,10 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
 
 def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None, ct,
                         ct_landmarks) -> dict:
-    from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
-    mask = _field(result, xray_pixels, field_mask)
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
-             "overlay": save_png(out / "overlay.png", overlay_image(
-                 xray_pixels, result.drr_line_integral, result.levels, clicked, mask=mask,
-                 level_check=result.level_check, bone_dark=result_bone_dark(result), ok=bool(result.ok),
-                 warnings=list(result.warnings)))}
+             "overlay": save_png(out / "overlay.png", result_overlay_image(result, xray_pixels, clicked))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
         paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,
