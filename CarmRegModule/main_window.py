@@ -237,7 +237,7 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
             spin.valueChanged.connect(self._xray_window_edited)
         self.xray_view.window_changed.connect(self._xray_window_shown)
         auto = QtWidgets.QPushButton("Auto contrast")
-        auto.setToolTip("Window the exposed field's 1st-99.5th percentiles")
+        auto.setToolTip("Window the exposed field's 1st-99th percentiles, clipped pixels left out")
         auto.clicked.connect(self.xray_view.auto_window)
         self.invert_check = QtWidgets.QCheckBox("Invert")
         self.invert_check.toggled.connect(self.xray_view.set_invert)

@@ -20,14 +20,10 @@ from qtpy import QtCore, QtGui, QtWidgets
 from carmreg.logic.errors import CancelledError, CarmRegError
 
 LOG = logging.getLogger("carmreg.gui")
-# level identification status -> colour (green sure, yellow proposed from the image alone, amber, red)
-STATUS_COLORS = {"confident": "#69db7c", "proposed": "#ffe066", "ambiguous": "#ffa94d", "contradicted": "#ff8787"}
+# the level answer's colours and the overlay's marker colours: carmreg.logic.report.style (one table)
 ACCENT = "#3fa7ff"
 POINT_COLOR = "#39d0ff"
 SELECTED_COLOR = "#ffd43b"
-FITTED_COLOR = "#40c057"
-CHECK_COLOR = "#ffd228"
-CLICK_COLOR = "#ff4d4d"
 
 
 # ---------------------------------------------------------------------------------------- application
@@ -229,11 +225,10 @@ def rgb_qimage(rgb_u8: np.ndarray) -> QtGui.QImage:
 
 
 def robust_range(image: np.ndarray, low_pct: float = 1.0, high_pct: float = 99.5) -> tuple[float, float]:
-    """Percentile range of an image (subsampled for speed)."""
-    flat = np.asarray(image, np.float32).ravel()
-    sample = flat[:: max(1, flat.size // 200_000)]
-    lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
-    return float(lo), float(hi if hi > lo else lo + 1.0)
+    """Percentile range of a whole image (``image.field.display_range`` without a field, clipped pixels kept)."""
+    from carmreg.logic.image.field import display_range
+
+    return display_range(image, None, (low_pct, high_pct), drop_clipped=False)
 
 
 def save_widget_png(widget: QtWidgets.QWidget, path) -> str:

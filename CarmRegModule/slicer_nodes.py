@@ -175,13 +175,13 @@ def set_projected_levels(markups_node, result, xray_node):
 
 
 def overlay_rgb(result, xray):
-    """The overlay image (X-ray, DRR bone in cyan, named levels, level banner) as (rows, cols, 3) uint8."""
-    from carmreg.logic.report.result_files import overlay_image
+    """The overlay as the window and ``overlay.png`` draw it (``report.overlay.result_overlay_image``: the X-ray
+    bone-bright whatever its stored polarity, the DRR's bone, the named levels, the level answer) as (rows, cols,
+    3) uint8."""
+    from carmreg.logic.report.overlay import result_overlay_image
 
     clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
-    image = overlay_image(xray.pixels, result.drr_line_integral, result.levels, clicked,
-                          mask=result.field_mask, level_check=result.level_check)
-    return np.asarray(image.convert("RGB"), np.uint8)
+    return np.asarray(result_overlay_image(result, xray.pixels, clicked).convert("RGB"), np.uint8)
 
 
 def set_default_parameters(parameter_node):

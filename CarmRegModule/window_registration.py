@@ -210,7 +210,8 @@ class WindowRegistration:
 
     def set_result(self, result) -> None:
         """Show a RegistrationResult: overlay, per-level PDE, level identification, stage figures, C-arm in 3D."""
-        from carmreg.logic.report.page import answer_banner, drawn_mpde_mm
+        from carmreg.logic.report.page import drawn_mpde_mm
+        from carmreg.logic.report.style import answer_banner
 
         self.result, self.result_stale = result, False
         clicks = self.shown_clicks()

@@ -18,7 +18,7 @@ import time
 import numpy as np
 from qtpy import QtCore, QtWidgets
 
-from ..qt_common import STATUS_COLORS
+from carmreg.logic.report.style import status_ink
 
 STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",
@@ -335,7 +335,7 @@ def level_check_html(check: dict | None) -> str:
         return ""
     from .result_panel import format_margin
 
-    colour = STATUS_COLORS.get(check["status"], "#ff8787")
+    colour = status_ink(check["status"])
     assigned = check.get("assigned_labels") or []
     text = f"<br>Level names: <b style='color:{colour}'>{check['status']}</b>"
     if assigned:

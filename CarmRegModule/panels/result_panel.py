@@ -21,8 +21,7 @@ from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.geometry.camera import POSE_NAMES
 from carmreg.logic.report.composite import MODES
-
-from ..qt_common import STATUS_COLORS
+from carmreg.logic.report.style import status_ink
 
 MODE_TEXT = {"named": "named clicks: their names were checked against the image",
              "partly_named": "partly named clicks: the unnamed ones were named from the image",
@@ -221,7 +220,7 @@ class ResultPanel(QtWidgets.QWidget):
         shown ('T10', '?1', ...) in the order the logic got them."""
         check = check or {}
         status = check.get("status")
-        colour = STATUS_COLORS.get(status, "#c8ccd0")
+        colour = status_ink(status)
         self.level_status_color = colour if status else None
         mode = check.get("mode")
         self.level_mode_label.setText(MODE_TEXT.get(mode, mode or "-") if check else "-")
@@ -315,7 +314,7 @@ class ResultPanel(QtWidgets.QWidget):
         has = result is not None
         self.set_banner(None)
         if has:
-            from carmreg.logic.report.page import answer_banner
+            from carmreg.logic.report.style import answer_banner
 
             self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok), result.warnings))
         restored = has and getattr(result, "restored", False)

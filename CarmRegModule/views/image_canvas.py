@@ -165,10 +165,12 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self._rgb = self._image is not None and self._image.ndim == 3
         self._spacing, self._origin = (float(spacing[0]), float(spacing[1])), (float(origin[0]), float(origin[1]))
         if self._image is not None and not self._rgb and not keep_window:
-            lo, hi = robust_range(self._image)
-            self._data_range = (lo, hi)
+            lo, hi = self.default_range()
+            self._data_range = self.drag_range()
             self.window, self.level = hi - lo, (hi + lo) / 2.0
         self._render()
+        if self._image is not None and not self._rgb and not keep_window:
+            self.window_changed.emit(self.window, self.level)
         if self._image is not None and not self._fitted_once:
             self._fitted_once = True
             QtCore.QTimer.singleShot(0, self.fit)
@@ -186,9 +188,20 @@ class ImageCanvas(QtWidgets.QGraphicsView):
         self._render()
         self.window_changed.emit(self.window, self.level)
 
+    def default_range(self) -> tuple[float, float]:
+        """(low, high) image values of the default window: the image's 1st-99.5th percentiles (subclasses
+        choose better, e.g. the X-ray's exposed field)."""
+        return robust_range(self._image)
+
+    def drag_range(self) -> tuple[float, float]:
+        """The value span a right-drag across 400 screen px moves the window or level by (default: the
+        default window's range)."""
+        return self.default_range()
+
     def auto_window(self) -> None:
+        """Back to the default window (``default_range``)."""
         if self._image is not None and not self._rgb:
-            lo, hi = robust_range(self._image)
+            lo, hi = self.default_range()
             self.set_window_level(hi - lo, (hi + lo) / 2)
 
     def set_invert(self, invert: bool) -> None:

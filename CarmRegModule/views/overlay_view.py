@@ -16,8 +16,8 @@ import numpy as np
 from qtpy import QtCore, QtGui
 
 from carmreg.logic.report import composite as overlay_images
+from carmreg.logic.report.style import CHECK_COLOUR, CLICK_COLOUR, FITTED_COLOUR, level_marker, status_ink
 
-from ..qt_common import CHECK_COLOR, CLICK_COLOR, FITTED_COLOR, STATUS_COLORS
 from .image_canvas import ImageCanvas, MarkerSpec
 
 LEGEND_HEIGHT_PX = 62.0
@@ -92,16 +92,11 @@ class OverlayView(ImageCanvas):
             if not level.get("in_image", True):
                 continue  # listed in the corner text instead
             u, v = level["uv_px"]
-            fitted = bool(level.get("fitted"))
-            pde = level.get("pde_mm")
-            wrong = fitted and self.contradicted  # a name the image contradicts must not look confirmed
-            name = level["label"] + ("?" if wrong else "")
-            text = name + (f"  {pde:.1f} mm" if pde is not None else "") if self.show_names else ""
-            colour = (STATUS_COLORS["contradicted"] if wrong else FITTED_COLOR) if fitted else CHECK_COLOR
-            specs.append(MarkerSpec(("level", level["label"]), u, v, text, "fitted" if fitted else "check",
-                                    1.0, colour))
+            marker = level_marker(level, self.contradicted, self.show_names)  # the report page's style
+            specs.append(MarkerSpec(("level", level["label"]), u, v, marker.text,
+                                    "fitted" if marker.fitted else "check", 1.0, marker.colour))
         for label, uv in self.clicks.items():
-            specs.append(MarkerSpec(("click", label), float(uv[0]), float(uv[1]), "", "click", 0.9, CLICK_COLOR))
+            specs.append(MarkerSpec(("click", label), float(uv[0]), float(uv[1]), "", "click", 0.9, CLICK_COLOUR))
         return specs
 
     def level_names(self) -> list[str]:
@@ -199,11 +194,11 @@ class OverlayView(ImageCanvas):
     def draw_annotations(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> None:
         top = self.draw_banner(painter, view)
         super().draw_annotations(painter, view.adjusted(0, top, 0, 0))
-        fitted = (STATUS_COLORS["contradicted"], "name contradicted by the image") if self.contradicted else \
-            (FITTED_COLOR, "fitted level (PDE to click)")
+        fitted = (status_ink("contradicted"), "name contradicted by the image") if self.contradicted else \
+            (FITTED_COLOUR, "fitted level (PDE to click)")
         entries = [("fitted", *fitted),
-                   ("check", CHECK_COLOR, "CT level not fitted (projected)"),
-                   ("click", CLICK_COLOR, "X-ray click")]
+                   ("check", CHECK_COLOUR, "CT level not fitted (projected)"),
+                   ("click", CLICK_COLOUR, "X-ray click")]
         font = painter.font()
         font.setBold(False)
         font.setPointSizeF(9.0)

@@ -13,8 +13,8 @@ import numpy as np
 from qtpy import QtCore, QtWidgets
 
 from carmreg.logic.io.landmarks import LEVEL_NAMES
+from carmreg.logic.report.style import status_ink
 
-from ..qt_common import STATUS_COLORS, robust_range
 from .image_canvas import ImageCanvas, MarkerSpec
 
 ARROW = "\u2192"
@@ -51,7 +51,7 @@ class XrayView(ImageCanvas):
             spec.text = self.marker_text(spec.key)
             assigned = self.assigned.get(spec.key)
             if assigned and assigned != self.store.get(spec.key).label and spec.style != "selected":
-                spec.color = STATUS_COLORS.get(self.assigned_status)
+                spec.color = status_ink(self.assigned_status) if self.assigned_status else None
         return specs
 
     def _place(self, position: np.ndarray) -> None:
@@ -82,25 +82,26 @@ class XrayView(ImageCanvas):
         menu.exec(global_pos)
 
     def set_pixels(self, pixels: np.ndarray | None) -> None:
+        """Show the X-ray as stored (pixels[row, column]) with the default window (``default_range``)."""
+        from carmreg.logic.image.field import field_mask
+
         self._fitted_once = False
-        self._field = None
+        # the exposed field: collimator, blanked corners and burnt-in text outside it
+        self._field = None if pixels is None else field_mask(pixels)
         self.set_image(None if pixels is None else np.asarray(pixels, np.float32))
-        if pixels is not None:
-            from carmreg.logic.image.field import field_mask
 
-            lo, hi = float(np.nanmin(pixels)), float(np.nanmax(pixels))
-            self._data_range = (lo, hi if hi > lo else lo + 1.0)
-            self._field = field_mask(pixels)  # the exposed field: burnt-in text and collimator left out
-            self.auto_window()
+    def default_range(self) -> tuple[float, float]:
+        """The X-ray's display range (``image.field.display_range``): the exposed field's 1st-99th percentiles,
+        clipped pixels (burned-out air, zero-filled metal) left out, so neither the collimator's black nor
+        saturated air flattens the bone."""
+        from carmreg.logic.image.field import display_range
 
-    def auto_window(self) -> None:
-        """Window/level from the 1st-99.5th percentiles inside the exposed field."""
-        if self._image is None:
-            return
-        field = getattr(self, "_field", None)
-        values = self._image[field] if field is not None and field.any() else self._image
-        lo, hi = robust_range(values)
-        self.set_window_level(hi - lo, (hi + lo) / 2)
+        return display_range(self._image, getattr(self, "_field", None))
+
+    def drag_range(self) -> tuple[float, float]:
+        """A right-drag moves the window over the whole stored range (min to max)."""
+        lo, hi = float(np.nanmin(self._image)), float(np.nanmax(self._image))
+        return lo, hi if hi > lo else lo + 1.0
 
     def size_px(self) -> tuple[int, int] | None:
         if self._image is None:

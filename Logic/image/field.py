@@ -13,6 +13,11 @@ connected part of the rest (holes filled: burnt-in text and dense metal inside t
 2 % of its size so the collimator edge and the vignetting rim do not dominate gradient metrics. When nothing
 plausible is found (< 5 % of the image) the whole image is the field. The rule does not depend on which way bone
 is displayed, so it can be found *before* the polarity (``appearance``).
+
+``display_range`` is the X-ray's default contrast, used by the window's X-ray view and by every overlay (window,
+report page, ``overlay.png``): the 1st-99th percentiles of the field's pixels, clipped pixels left out - those at
+the field's lowest or highest value when they are more than 0.1 % of it (burned-out air at the detector's
+saturation, zero-filled metal), which would otherwise stretch the window and flatten the bone.
 """
 
 from __future__ import annotations
@@ -22,6 +27,9 @@ from scipy import ndimage
 
 EXTREME_FRACTION = 0.05   # background within this fraction of the range of an extreme value
 FLAT_FRACTION = 0.02      # and locally flat: 5 x 5 std below this fraction of the range
+CLIPPED_FRACTION = 0.001  # a field's extreme value held by more than this fraction of its pixels is clipping
+DISPLAY_PERCENTILES = (1.0, 99.0)
+SAMPLE_SIZE = 250_000     # percentiles from about this many pixels (a regular subsample)
 
 
 def _border_connected(candidates: np.ndarray) -> np.ndarray:
@@ -58,3 +66,32 @@ def field_mask(pixels: np.ndarray) -> np.ndarray:
     margin = max(1, int(0.02 * np.sqrt(field.sum())))
     eroded = ndimage.binary_erosion(field, iterations=margin)
     return eroded if eroded.mean() > 0.05 else field
+
+
+def display_range(pixels: np.ndarray, mask: np.ndarray | None = None,
+                  percentiles: tuple[float, float] = DISPLAY_PERCENTILES,
+                  drop_clipped: bool = True) -> tuple[float, float]:
+    """(low, high) pixel values to display an image between (module docstring): the ``percentiles`` of the
+    pixels inside ``mask`` (the exposed field, (rows, cols) bool as ``field_mask`` gives; None or empty = the
+    whole image), without the clipped ones when ``drop_clipped``. Values in the image's own units; high > low."""
+    img = np.asarray(pixels, np.float32)
+    values = img[mask] if mask is not None and np.shape(mask) == img.shape and mask.any() else img.ravel()
+    values = values[:: max(1, values.size // SAMPLE_SIZE)]
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return 0.0, 1.0
+    if drop_clipped:
+        values = _without_clipped(values)
+    lo, hi = np.percentile(values, percentiles)
+    return float(lo), float(hi) if hi > lo else float(lo) + 1.0
+
+
+def _without_clipped(values: np.ndarray) -> np.ndarray:
+    """``values`` without those equal to their minimum or maximum when either is held by more than
+    CLIPPED_FRACTION of them (clipping); unchanged when that would leave nothing."""
+    keep = np.ones(values.shape, bool)
+    for extreme in (values.min(), values.max()):
+        at = values == extreme
+        if at.mean() > CLIPPED_FRACTION:
+            keep &= ~at
+    return values[keep] if keep.any() else values

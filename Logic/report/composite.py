@@ -1,14 +1,17 @@
 """Composite images for checking a registration: blend, checkerboard and edge overlays (numpy only).
 
 Inputs are two images of the same shape indexed image[row, column]: the X-ray as displayed and the DRR line
-integral at the found pose (bone bright). Each is normalised to 0..1 between its 1st and 99.5th percentile
-inside the exposed field (``normalise``; black outside it); the X-ray is flipped to bone-bright when
-``bone_dark`` so both read alike.
+integral at the found pose (bone bright). Each is normalised to 0..1 inside the exposed field (``normalise``;
+black outside it): the X-ray between its display range (``image.field.display_range``: the field's 1st-99th
+percentiles without clipped pixels, the X-ray view's default contrast), the DRR between its 1st and 99.5th
+percentiles; the X-ray is flipped to bone-bright when ``bone_dark`` so both read alike.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from carmreg.logic.image.field import DISPLAY_PERCENTILES, display_range
 
 MODES = ("blend", "checkerboard", "edges")
 DRR_TINT = np.array([1.0, 0.62, 0.25], np.float32)  # DRR drawn in amber in blend mode
@@ -16,19 +19,19 @@ EDGE_COLOR = np.array([0.25, 1.0, 0.45], np.float32)
 
 
 def normalise(image: np.ndarray, mask: np.ndarray | None = None, low_pct: float = 1.0,
-              high_pct: float = 99.5) -> np.ndarray:
-    """Linear map of the percentile range (inside ``mask``, the exposed field) to 0..1; 0 outside the mask."""
+              high_pct: float = 99.5, drop_clipped: bool = False) -> np.ndarray:
+    """Linear map of the percentile range (inside ``mask``, the exposed field; ``image.field.display_range``)
+    to 0..1; 0 outside the mask."""
     img = np.asarray(image, np.float32)
-    inside = img[mask] if mask is not None and mask.any() else img.ravel()
-    sample = inside[:: max(1, inside.size // 250_000)]
-    lo, hi = np.percentile(sample[np.isfinite(sample)], [low_pct, high_pct])
+    lo, hi = display_range(img, mask, (low_pct, high_pct), drop_clipped)
     out = np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     return out if mask is None else np.where(mask, out, 0.0).astype(np.float32)
 
 
 def xray_bone_bright(pixels: np.ndarray, bone_dark: bool, mask: np.ndarray | None = None) -> np.ndarray:
-    """The X-ray normalised to 0..1 with bone bright; 0 (black) outside the exposed field ``mask``."""
-    x = normalise(pixels, mask)
+    """The X-ray normalised to 0..1 over its display range (the X-ray view's default contrast) with bone
+    bright; 0 (black) outside the exposed field ``mask``."""
+    x = normalise(pixels, mask, *DISPLAY_PERCENTILES, drop_clipped=True)
     x = 1.0 - x if bone_dark else x
     return x if mask is None else np.where(mask, x, 0.0).astype(np.float32)
 

@@ -32,15 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from carmreg.logic.io.atomic import atomic_write
-from carmreg.logic.report.composite import blend, normalise, xray_bone_bright
+from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
+from carmreg.logic.report.style import level_answer
 
 A4_INCHES = (8.27, 11.69)
-STATUS_COLOURS = {"confident": "#2b8a3e", "proposed": "#b08900", "ambiguous": "#e8590c",
-                  "contradicted": "#c92a2a", None: "#495057"}
-STATUS_WORDS = {"confident": "LEVELS CONFIRMED BY THE IMAGE", "proposed": "LEVELS PROPOSED (NOT CONFIRMED)",
-                "ambiguous": "LEVELS AMBIGUOUS", "contradicted": "LEVEL NAMES CONTRADICTED BY THE IMAGE",
-                None: "LEVEL NAMES NOT CHECKED"}
-FITTED_COLOUR, CHECK_COLOUR, CLICK_COLOUR, WRONG_COLOUR = "#40c057", "#ffd228", "#ff4d4d", "#ff6b6b"
 NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
 
 
@@ -51,89 +46,6 @@ def drawn_mpde_mm(levels: list[dict]) -> float | None:
     ``pde_mm`` are computed with the final projection matrix). None when no level was clicked."""
     values = [float(lv["pde_mm"]) for lv in levels if lv.get("fitted") and lv.get("pde_mm") is not None]
     return float(np.mean(values)) if values else None
-
-
-def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
-    """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
-    the margin and how to read it to the reason."""
-    check = level_check or {}
-    status = check.get("status")
-    headline = STATUS_WORDS.get(status, str(status).upper())
-    mode = check.get("mode")
-    if mode == "image_only":
-        names = ", ".join(check.get("visible_labels") or []) or "none"
-    else:
-        names = ", ".join(check.get("assigned_labels") or [])
-    if names:
-        headline += f": {names}"
-    reason = check.get("message") or ("the level check was not run (fully named clicks, level check off)"
-                                      if not check else "")
-    margin = check.get("margin")
-    if detail and margin is not None and np.isfinite(margin):
-        from carmreg.logic.registration.level_confidence import ConfidenceRule
-
-        reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
-                  f"is better; confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule)"
-    colour = STATUS_COLOURS.get(status, STATUS_COLOURS[None])
-    if not ok and status not in ("contradicted",):
-        colour = STATUS_COLOURS["contradicted"]
-    return headline, reason.strip(), colour
-
-
-def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
-    """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
-    the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
-    reason; None when there is nothing to say (level check off and every check passed)."""
-    if not level_check and ok:
-        return None
-    headline, reason, colour = level_answer(level_check, ok, detail=False)
-    if not ok and (level_check or {}).get("status") != "contradicted":
-        headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
-    return headline, reason, colour
-
-
-# ----------------------------------------------------------------------------------------------- overlay
-
-def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, bone_dark: bool,
-                     alpha: float = 0.5, mask: np.ndarray | None = None) -> np.ndarray:
-    """(rows, cols, 3) uint8: the window's default overlay - the X-ray bone bright in grey, the DRR added in
-    amber with weight ``alpha``, black outside the exposed field ``mask`` (default ``image.field.field_mask``)."""
-    from carmreg.logic.image.field import field_mask
-
-    if mask is None or np.shape(mask) != np.shape(xray_pixels):
-        mask = field_mask(xray_pixels)
-    xray01 = xray_bone_bright(xray_pixels, bone_dark, mask)
-    drr01 = normalise(drr_line_integral, mask) if drr_line_integral is not None else np.zeros_like(xray01)
-    return blend(xray01, drr01, alpha)
-
-
-def _draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool) -> None:
-    """The composite with the projected levels, their names and PDE, and the clicks (image[row, col];
-    marker positions (u, v) = (column, row) px)."""
-    ax.imshow(rgb, interpolation="lanczos")
-    rows, cols = rgb.shape[:2]
-    font = 7.5
-    for lv in levels:
-        if not lv.get("in_image", True):
-            continue
-        u, v = lv["uv_px"]
-        fitted = bool(lv.get("fitted"))
-        colour = (WRONG_COLOUR if contradicted else FITTED_COLOUR) if fitted else CHECK_COLOUR
-        if fitted:
-            ax.plot(u, v, "o", ms=5.5, color=colour, mec="black", mew=0.6)
-        else:
-            ax.plot(u, v, "o", ms=7, mfc="none", mec=colour, mew=1.4)
-        pde = lv.get("pde_mm")
-        text = lv["label"] + ("?" if fitted and contradicted else "") + (f"  {pde:.1f} mm" if pde is not None else "")
-        ax.annotate(text, (u, v), xytext=(7, -3), textcoords="offset points", color=colour, fontsize=font,
-                    fontweight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55,
-                                             "ec": "none"})  # a box, not an outline: the name stays text
-    for uv in (clicked or {}).values():
-        ax.plot(float(uv[0]), float(uv[1]), "+", ms=9, mew=1.3, color=CLICK_COLOUR)
-    ax.set_xlim(-0.5, cols - 0.5)
-    ax.set_ylim(rows - 0.5, -0.5)
-    ax.set_xticks([])
-    ax.set_yticks([])
 
 
 # ----------------------------------------------------------------------------------------------- text blocks
@@ -236,14 +148,6 @@ def _wrap(text: str, width: int) -> str:
 
 # ----------------------------------------------------------------------------------------------- page
 
-def _bone_dark(result, bone_dark: bool | None) -> bool:
-    """The X-ray's polarity: as given, else as the registration found it (``result.appearance``), else dark."""
-    if bone_dark is not None:
-        return bool(bone_dark)
-    appearance = getattr(result, "appearance", None)
-    return bool(getattr(appearance, "bone_dark", True))
-
-
 def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, bone_dark: bool | None = None,
                   composite_rgb: np.ndarray | None = None, made_utc: str | None = None):
     """The report page as a matplotlib Figure (A4 portrait). ``composite_rgb``: the overlay image as the window
@@ -253,7 +157,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
 
     from carmreg.logic.report.result_files import result_dict
 
-    bone_dark = _bone_dark(result, bone_dark)
+    bone_dark = result_bone_dark(result, bone_dark)
     doc = result_dict(result)
     check = doc.get("level_check") or None
     status = (check or {}).get("status")
@@ -280,7 +184,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.text(0.015, 0.56, _wrap(text, 128), fontsize=7.2, color="white", va="top", transform=banner.transAxes)
 
     ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))
-    _draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted")
+    draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted")
     fig.text(0.05, 0.438, "Overlay: X-ray (grey, bone bright) + DRR at the found pose (amber). Green disc: level "
              "used by the fit, with its\nPDE to the click; yellow ring: level not clicked; red cross: click"
              + ("; red '?': name contradicted." if status == "contradicted" else "."), fontsize=6.8, va="top",

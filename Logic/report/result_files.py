@@ -11,10 +11,11 @@ Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.trans
   ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
   ``parameters``; ``reproducibility`` (versions, seed).
-- ``overlay.png``: the X-ray with the DRR's bone blended in cyan and every CT-labelled level's projected centroid
-  and name: fitted levels as filled green discs with the clicked point as a red cross, the others as yellow rings;
-  a banner at the top states how the levels were named and how sure that is (green confident, yellow proposed
-  from the image alone, amber ambiguous, red contradicted).
+- ``overlay.png``: the overlay as the window shows it by default and the report page prints it
+  (``report.overlay``: the X-ray bone bright with the DRR blended in amber, every CT-labelled level projected and
+  named - fitted levels as filled green discs with their PDE, red with a "?" when the image contradicts the
+  names, the others as yellow rings, clicks as red crosses - and the level answer's banner across the top, in
+  the colours of ``report.style``), at the X-ray's size.
 - ``drr.png`` (attenuation, bone bright) and ``drr.nrrd`` (float32 line integrals; a 3D one-slice volume on
   the detector plane in LPS: ``space origin`` = detector pixel (0, 0), ``space directions`` = one pixel step
   along columns and rows, then the detector normal; it opens in 3D Slicer in place).
@@ -31,18 +32,17 @@ import platform
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image
 
 from carmreg.logic import __version__
 from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from carmreg.logic.io.transaction import FolderTransaction
+from carmreg.logic.report.overlay import result_overlay_image
+from carmreg.logic.report.style import hex_rgb, status_ink
 
-FITTED_RGB = (40, 220, 90)
-CLICK_RGB = (255, 60, 60)
-OTHER_RGB = (255, 210, 40)
-EDGE_RGB = np.array([0, 200, 255], float)
+__all__ = ["RESULT_FILES", "level_banner", "result_dict", "save_png", "save_result", "to_uint8", "write_drr_nrrd"]
 
 
 def result_dict(result) -> dict:
@@ -85,34 +85,13 @@ def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5
     return (np.clip((image - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
 
 
-def _font(size: int):
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:  # Pillow < 10.1
-        return ImageFont.load_default()
-
-
-def _tint_bone(rgb: np.ndarray, drr: np.ndarray, strength: float, mask: np.ndarray | None) -> np.ndarray:
-    """Blend the DRR's bone (its band-pass detail: 2-px blur minus 25-px blur, positive part) in cyan,
-    inside the X-ray's exposed field ``mask`` when given."""
-    from scipy import ndimage
-
-    scale = max(drr.shape) / 768.0
-    detail = ndimage.gaussian_filter(drr, 2.0 * scale) - ndimage.gaussian_filter(drr, 25.0 * scale)
-    alpha = np.clip(detail / max(np.percentile(detail, 99.5), 1e-9), 0, 1)[..., None] * strength
-    if mask is not None:
-        alpha = alpha * mask[..., None]
-    return rgb * (1 - alpha) + EDGE_RGB * alpha
-
-
-STATUS_RGB = {"confident": (40, 220, 90), "proposed": (255, 230, 60), "ambiguous": (255, 190, 0),
-              "contradicted": (255, 60, 60)}
 MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
              "image_only": "image alone (no clicks)"}
 
 
 def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] | None:
-    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up."""
+    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up, with
+    the status's colour on a dark background (``style.status_ink``) as (r, g, b)."""
     if not level_check:
         return None
     status = str(level_check.get("status", ""))
@@ -122,40 +101,7 @@ def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] |
     if margin is not None and np.isfinite(margin):
         text += f" (margin {margin:+.3f}"
         text += f" over {'-'.join([runner[0], runner[-1]]) if len(runner) > 1 else runner[0]})" if runner else ")"
-    return text, STATUS_RGB.get(status, (255, 255, 255))
-
-
-def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list,
-                  clicked: dict | None = None, edge_strength: float = 0.6,
-                  mask: np.ndarray | None = None, level_check: dict | None = None) -> Image.Image:
-    """RGB overlay: X-ray (as displayed) + DRR bone in cyan + projected, named centroids."""
-    gray = to_uint8(np.asarray(xray_pixels, float)).astype(float)
-    rgb = np.repeat(gray[..., None], 3, axis=2)
-    if drr_line_integral is not None:
-        rgb = _tint_bone(rgb, np.asarray(drr_line_integral, float), edge_strength, mask)
-    img = Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8))
-    draw = ImageDraw.Draw(img)
-    size = max(img.size)
-    r, font = max(4, size // 100), _font(max(12, size // 40))
-    for level in levels:
-        u, v = level["uv_px"]
-        if level["fitted"]:
-            draw.ellipse([u - r, v - r, u + r, v + r], fill=FITTED_RGB, outline=(0, 0, 0))
-        else:
-            draw.ellipse([u - r, v - r, u + r, v + r], outline=OTHER_RGB, width=max(2, r // 2))
-        colour = FITTED_RGB if level["fitted"] else OTHER_RGB
-        draw.text((u + 2 * r, v - r), level["label"], fill=colour, font=font, stroke_width=2,
-                  stroke_fill=(0, 0, 0))
-    for uv in (clicked or {}).values():
-        u, v = uv
-        draw.line([u - 2 * r, v, u + 2 * r, v], fill=CLICK_RGB, width=2)
-        draw.line([u, v - 2 * r, u, v + 2 * r], fill=CLICK_RGB, width=2)
-    banner = level_banner(level_check)
-    if banner is not None:
-        box = draw.textbbox((r, r), banner[0], font=font)
-        draw.rectangle([box[0] - r // 2, box[1] - r // 2, box[2] + r // 2, box[3] + r // 2], fill=(0, 0, 0))
-        draw.text((r, r), banner[0], fill=banner[1], font=font)
-    return img
+    return text, hex_rgb(status_ink(status))
 
 
 def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:
@@ -265,12 +211,6 @@ RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm",
 """Every name ``save_result`` has written (an old folder's copies are replaced or removed, never kept)."""
 
 
-def _field(result, xray_pixels: np.ndarray, field_mask) -> np.ndarray:
-    """The registration's exposed field when it was of these pixels, else found again."""
-    mask = getattr(result, "field_mask", None)
-    return mask if mask is not None and mask.shape == np.shape(xray_pixels) else field_mask(xray_pixels)
-
-
 def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: dict | None = None,
                 ct=None, ct_landmarks=None) -> dict:
     """Write every output file as one transaction (``FolderTransaction``): ``out_dir`` then holds exactly this
@@ -292,14 +232,10 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
 
 def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None, ct,
                         ct_landmarks) -> dict:
-    from carmreg.logic.image.field import field_mask
     from carmreg.logic.io.transforms import write_tfm
 
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
-             "overlay": save_png(out / "overlay.png", overlay_image(xray_pixels, result.drr_line_integral,
-                                                                    result.levels, clicked,
-                                                                    mask=_field(result, xray_pixels, field_mask),
-                                                                    level_check=result.level_check))}
+             "overlay": save_png(out / "overlay.png", result_overlay_image(result, xray_pixels, clicked))}
     if result.drr_line_integral is not None:
         paths["drr_png"] = save_png(out / "drr.png", to_uint8(result.drr_line_integral))
         paths["drr_nrrd"] = write_drr_nrrd(out / "drr.nrrd", result.drr_line_integral, result.geometry,

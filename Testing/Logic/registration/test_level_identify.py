@@ -257,14 +257,14 @@ def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_w
     assert state.pairs is None  # identified in the levels stage
 
 
-def test_overlay_banner_states_mode_status_margin_and_runner_up():
-    from carmreg.logic.report.result_files import STATUS_RGB, level_banner
+def test_level_banner_states_mode_status_margin_and_runner_up():
+    from carmreg.logic.report.result_files import level_banner
 
     text, rgb = level_banner({"mode": "unnamed", "status": "confident", "margin": 0.121,
                               "runner_up_labels": ["T11", "T12", "L1"]})
     assert text == "Levels from unnamed clicks: CONFIDENT (margin +0.121 over T11-L1)"
-    assert rgb == STATUS_RGB["confident"]
+    assert rgb == (0x69, 0xDB, 0x7C)  # the confident green of report.style, the window's
     text, rgb = level_banner({"mode": "image_only", "status": "proposed", "margin": float("inf"),
                               "runner_up_labels": None})
-    assert text == "Levels from image alone (no clicks): PROPOSED" and rgb == STATUS_RGB["proposed"]
+    assert text == "Levels from image alone (no clicks): PROPOSED" and rgb == (0xFF, 0xE0, 0x66)
     assert level_banner(None) is None

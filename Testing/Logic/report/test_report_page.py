@@ -7,7 +7,8 @@ import pytest
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
 from carmreg.logic.registration.pipeline import RegistrationParameters, RegistrationResult, StageResult
-from carmreg.logic.report.page import answer_banner, drawn_mpde_mm, level_answer, write_report_pdf
+from carmreg.logic.report.page import drawn_mpde_mm, write_report_pdf
+from carmreg.logic.report.style import answer_banner, level_answer
 
 pypdf = pytest.importorskip("pypdf")
 
@@ -74,3 +75,29 @@ def test_drawn_mpde_and_the_answer_in_words_and_colour():
     assert failed[0].startswith("CHECKS FAILED") and failed[1].startswith("fine-stage") and failed[2] == "#c92a2a"
     red = level_answer(_result("contradicted").level_check, ok=False)
     assert red[0].startswith("LEVEL NAMES CONTRADICTED") and red[2] == "#c92a2a"
+
+
+def _near(rgb: np.ndarray, colour: str, tolerance: float = 40.0) -> np.ndarray:
+    """Mask of the pixels within ``tolerance`` (RGB distance, 0..255) of a ``#rrggbb`` colour."""
+    from carmreg.logic.report.style import hex_rgb
+
+    return np.linalg.norm(rgb.astype(float) - np.array(hex_rgb(colour), float), axis=-1) <= tolerance
+
+
+@pytest.mark.parametrize("status", ["contradicted", "confident"])
+def test_overlay_png_draws_contradicted_names_in_the_contradiction_colour(tmp_path, status):
+    from PIL import Image
+
+    from carmreg.logic.report.result_files import save_result
+    from carmreg.logic.report.style import FITTED_COLOUR, status_ink
+
+    result = _result(status)
+    clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv["fitted"]}
+    paths = save_result(result, tmp_path / "out", result.xray_line_integral, clicked)
+    rgb = np.asarray(Image.open(paths["overlay"]).convert("RGB"))
+    assert rgb.shape == (96, 128, 3)  # the X-ray's size, on its pixel grid
+    red, green = _near(rgb, status_ink("contradicted")).sum(), _near(rgb, FITTED_COLOUR).sum()
+    if status == "contradicted":  # "T10?  0.5 mm" ... in red: the wrong names never look confirmed
+        assert red > 60 and green < 5, (red, green)
+    else:
+        assert green > 60 and red < 5, (red, green)

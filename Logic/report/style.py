@@ -1,0 +1,119 @@
+"""The one drawing style of a result, shared by the window, the report page and ``overlay.png`` (no Qt).
+
+Colours are hex strings (``#rrggbb``). Each status of the level answer has two shades of one hue:
+
+- ``fill``: the background of a banner with white text on it (the window's banner, the report page's banner,
+  the banner of ``overlay.png``);
+- ``ink``: text and markers on a dark background (the window's panels, names drawn on an X-ray).
+
+``level_answer`` and ``answer_banner`` give the level answer in words and its colour, for every banner.
+
+Markers on an overlay (positions (u, v) = (column, row) detector px): a filled disc for a level the fit used,
+named with its PDE (detector mm) to the click, in ``FITTED_COLOUR`` - or, when the image contradicts the given
+names, in the contradiction colour with a "?" after the name; a ring in ``CHECK_COLOUR`` for a CT-labelled level
+not clicked; a cross in ``CLICK_COLOUR`` for the surgeon's click.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class StatusColour:
+    """Two shades of a level-answer colour (module docstring)."""
+
+    fill: str
+    ink: str
+
+
+STATUS_COLOURS: dict[str | None, StatusColour] = {
+    "confident": StatusColour("#2b8a3e", "#69db7c"),     # green: names confirmed by the image
+    "proposed": StatusColour("#b08900", "#ffe066"),      # yellow: named from the image alone, not confirmed
+    "ambiguous": StatusColour("#e8590c", "#ffa94d"),     # amber
+    "contradicted": StatusColour("#c92a2a", "#ff8787"),  # red: the image contradicts the given names
+    None: StatusColour("#495057", "#c8ccd0"),            # grey: not checked
+}
+STATUS_WORDS = {"confident": "LEVELS CONFIRMED BY THE IMAGE", "proposed": "LEVELS PROPOSED (NOT CONFIRMED)",
+                "ambiguous": "LEVELS AMBIGUOUS", "contradicted": "LEVEL NAMES CONTRADICTED BY THE IMAGE",
+                None: "LEVEL NAMES NOT CHECKED"}
+FITTED_COLOUR = "#40c057"
+CHECK_COLOUR = "#ffd228"
+CLICK_COLOUR = "#ff4d4d"
+
+
+def status_fill(status: str | None) -> str:
+    """Banner background of a level-answer status (unknown statuses: the not-checked grey)."""
+    return STATUS_COLOURS.get(status, STATUS_COLOURS[None]).fill
+
+
+def status_ink(status: str | None) -> str:
+    """Text/marker colour of a level-answer status on a dark background."""
+    return STATUS_COLOURS.get(status, STATUS_COLOURS[None]).ink
+
+
+def hex_rgb(colour: str) -> tuple[int, int, int]:
+    """``#rrggbb`` -> (r, g, b) 0..255."""
+    value = colour.lstrip("#")
+    return int(value[0:2], 16), int(value[2:4], 16), int(value[4:6], 16)
+
+
+@dataclass(frozen=True)
+class LevelMarker:
+    """How one projected level is drawn: its text, colour and whether it is a fitted (filled) marker."""
+
+    text: str
+    colour: str
+    fitted: bool
+
+
+def level_marker(level: dict, contradicted: bool, with_text: bool = True) -> LevelMarker:
+    """The marker of one ``result.levels`` entry: ``T12  1.8 mm`` in green for a fitted level (PDE to the
+    click, detector mm), ``T12?  1.8 mm`` in the contradiction colour when ``contradicted``, ``L2`` in yellow
+    for a level not clicked; ``with_text`` False gives an empty text (names hidden)."""
+    fitted = bool(level.get("fitted"))
+    wrong = fitted and contradicted  # a name the image contradicts must not look confirmed
+    pde = level.get("pde_mm")
+    text = level["label"] + ("?" if wrong else "") + (f"  {pde:.1f} mm" if pde is not None else "")
+    colour = (status_ink("contradicted") if wrong else FITTED_COLOUR) if fitted else CHECK_COLOUR
+    return LevelMarker(text if with_text else "", colour, fitted)
+
+
+# ----------------------------------------------------------------------------------------------- the answer
+
+def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
+    """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
+    the margin and how to read it to the reason."""
+    check = level_check or {}
+    status = check.get("status")
+    headline = STATUS_WORDS.get(status, str(status).upper())
+    mode = check.get("mode")
+    if mode == "image_only":
+        names = ", ".join(check.get("visible_labels") or []) or "none"
+    else:
+        names = ", ".join(check.get("assigned_labels") or [])
+    if names:
+        headline += f": {names}"
+    reason = check.get("message") or ("the level check was not run (fully named clicks, level check off)"
+                                      if not check else "")
+    margin = check.get("margin")
+    if detail and margin is not None and math.isfinite(margin):
+        from carmreg.logic.registration.level_confidence import ConfidenceRule
+
+        reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
+                  f"is better; confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule)"
+    colour = status_fill(status if ok or status == "contradicted" else "contradicted")
+    return headline, reason.strip(), colour
+
+
+def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
+    """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
+    the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
+    reason; None when there is nothing to say (level check off and every check passed)."""
+    if not level_check and ok:
+        return None
+    headline, reason, colour = level_answer(level_check, ok, detail=False)
+    if not ok and (level_check or {}).get("status") != "contradicted":
+        headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
+    return headline, reason, colour
