@@ -225,28 +225,14 @@ def _print_report(result, seconds: float, out) -> None:
         print(f"X-ray appearance: {a.note}; stored as {a.storage.replace('-', ' ')}; orientation "
               f"{a.orientation.replace('-', ' ')}{'' if a.orientation_clear else ' (unclear)'}")
     if result.level_check:
+        from carmreg.logic.report.style import level_summary
+
         print(level_summary(result.level_check))
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"{'OK' if result.ok else 'CHECKS FAILED'}: wrote {out}/result.json, overlay.png, drr.png, drr.nrrd, "
           f"carm.tfm, slicer/CarmReg.mrml, report.pdf ({seconds:.1f} s in all)")
 
-
-def level_summary(check: dict) -> str:
-    """The levels stage in two lines: which names, from what, how sure (margin = score of the best other
-    labelling minus the chosen one's; the objective is 1 - gradient correlation + landmark terms)."""
-    mode = check.get("mode")
-    if mode == "image_only":
-        what = f"levels in view (from the image alone): {', '.join(check.get('visible_labels') or []) or 'none'}"
-    elif mode == "named":
-        what = f"clicked names {', '.join(check.get('assigned_labels') or [])} checked against shifted names"
-    else:
-        what = f"clicks named {', '.join(check.get('assigned_labels') or [])} ({mode.replace('_', ' ')})"
-    runner = check.get("runner_up_labels")
-    margin = check.get("margin")
-    sure = f"{check['status'].upper()}, margin {margin:+.3f}" if margin is not None else check["status"].upper()
-    return (f"level identification: {what}\n  {sure}" + (f" over {', '.join(runner)}" if runner else "")
-            + f": {check.get('message', '')}")
 
 
 def _check_out_dir(out) -> None:
@@ -312,7 +298,7 @@ def cmd_demo(args) -> int:
         fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
         score = evaluate(result.projection_matrix, centroids, truth, fitted)
         true_clicked = read_landmarks_2d(case["xray_landmarks"]).labels
-        assigned = (result.level_check or {}).get("assigned_labels")
+        assigned = result.level_check.assigned_labels if result.level_check else None
         if args.clicks == "unnamed" and assigned is not None:
             right = assigned == list(true_clicked)
             print(f"clicks named {', '.join(assigned)}; the sample's true names are {', '.join(true_clicked)}: "

@@ -250,7 +250,7 @@ def show_result(scene, parameter_node, result, xray):
 
 def result_summary(result):
     """A few lines for the panel: status, the level answer, mPDE per stage."""
-    from carmreg.logic.report.result_files import level_banner
+    from carmreg.logic.report.style import level_banner
 
     lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.warnings)]
     banner = level_banner(result.level_check)

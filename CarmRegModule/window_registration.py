@@ -5,7 +5,7 @@ stage on a worker thread; after the last stage ``CarmRegLogic.result`` builds th
 change of data, geometry or landmarks drops the prepared state (the stages must be run again).
 
 Level identification: the X-ray clicks go to the logic named, partly named, unnamed (label None) or not at all
-(``xray_click_mode``). The result's ``level_check["assigned_labels"]`` names each click in the order the logic got
+(``xray_click_mode``). The result's ``level_check.assigned_labels`` names each click in the order the logic got
 them; the window keeps the point ids of that order, so the views show ``?1 → T11`` and "Accept assigned names"
 renames exactly those points (one undo step).
 """
@@ -224,7 +224,7 @@ class WindowRegistration:
         bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary, banner,
-                                     contradicted=(check or {}).get("status") == "contradicted")
+                                     contradicted=bool(check and check.contradicted))
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)
         self.result_panel.set_result(result, [self.xray_store.display_name(pid) for pid in ids])
@@ -247,30 +247,31 @@ class WindowRegistration:
         return {self.xray_store.display_name(p.id): p.position.copy() for p in self.xray_store.points()}
 
     def _result_click_ids(self, result) -> list[int]:
-        """Point ids of the clicks ``level_check["assigned_labels"]`` names, in its order: the clicks as given
-        to the logic, picked by ``level_check["click_indices"]`` (the logic leaves named clicks without a CT
+        """Point ids of the clicks ``level_check.assigned_labels`` names, in its order: the clicks as given
+        to the logic, picked by ``level_check.click_indices`` (the logic leaves named clicks without a CT
         centroid out of the identification)."""
         ids = [pid for pid in self._input_click_ids if self.xray_store.get(pid) is not None]
         if len(ids) != len(self.xray_store):  # not from this window's inputs (scripts): the current order
             ids = [p.id for p in self.xray_store.points()]
-        indices = (getattr(result, "level_check", None) or {}).get("click_indices")
+        check = getattr(result, "level_check", None)
+        indices = check.click_indices if check else None
         if indices is not None and all(0 <= i < len(ids) for i in indices):
             return [ids[i] for i in indices]
         return ids
 
     def _show_assigned(self, result, click_ids: list[int]) -> None:
-        """Map ``level_check["assigned_labels"]`` onto the clicks and show it in the X-ray view and panel.
+        """Map ``level_check.assigned_labels`` onto the clicks and show it in the X-ray view and panel.
         When the image contradicts the given names, the names it supports (``supported_labels``) are shown and
         offered instead: ``T10 → T11`` in red."""
-        check = (getattr(result, "level_check", None) or {}) if result is not None else {}
-        labels = list(check.get("assigned_labels") or [])
+        check = getattr(result, "level_check", None) if result is not None else None
+        labels = list(check.assigned_labels) if check else []
         matched = len(labels) == len(click_ids)
-        if check.get("status") == "contradicted":
+        if check and check.contradicted:
             labels = supported_labels(check)
         self.assigned_names = {pid: lb for pid, lb in zip(click_ids, labels, strict=True) if lb} if matched else {}
         if labels and not matched:
             LOG.warning("level check assigned %d names to %d clicks: not shown", len(labels), len(click_ids))
-        self.xray_view.set_assigned(self.assigned_names, check.get("status"))
+        self.xray_view.set_assigned(self.assigned_names, check.status if check else None)
         self.xray_panel.set_assigned(self.assigned_names)
 
     def clear_assigned_names(self) -> None:
@@ -297,7 +298,8 @@ class WindowRegistration:
         elif not self.names_to_accept():
             reason = "The clicks already carry the assigned names"
         self.act_accept_names.setEnabled(not reason)
-        contradicted = self.result is not None and (self.result.level_check or {}).get("status") == "contradicted"
+        check = self.result.level_check if self.result is not None else None
+        contradicted = bool(check and check.contradicted)
         text = None
         if contradicted and not reason:
             text = "Use the names the image supports: " + ", ".join(
@@ -317,15 +319,15 @@ class WindowRegistration:
         changes = self.names_to_accept()
         if not changes:
             return {}
-        check = self.result.level_check or {}
-        status = check.get("status")
+        check = self.result.level_check
+        status = check.status if check else None
         if status == "contradicted":
             return self.use_supported_names(register)
         if ask and status != "confident":
             names = ", ".join(self.assigned_names.values())
             choice = self.dialogs.question(
                 "CarmReg - level names",
-                f"The level identification is {str(status).upper()}: {check.get('message', '')}\n\n"
+                f"The level identification is {str(status).upper()}: {check.message if check else ''}\n\n"
                 f"Name the clicks {names} anyway?", ("Accept anyway", "Cancel"))
             if choice != "Accept anyway":
                 return {}
@@ -398,14 +400,14 @@ def _level_key(label: str) -> int:
     return level_index(label)
 
 
-def supported_labels(check: dict) -> list[str]:
+def supported_labels(check) -> list[str]:
     """Per identified click (``assigned_labels`` order), the name the image supports: the winner labelling
     mapped onto the given one position by position along the spine (every labelling names the clicks in
     spine order; the given one is the hypothesis with the assigned names). The assigned names when there is
     no winner."""
-    assigned = list(check.get("assigned_labels") or [])
-    winner = list(check.get("winner_labels") or [])
-    given = next((list(h["labels"]) for h in check.get("hypotheses") or []
+    assigned = list(check.assigned_labels)
+    winner = list(check.winner_labels)
+    given = next((list(h["labels"]) for h in check.hypotheses
                   if sorted(h.get("labels") or []) == sorted(a for a in assigned if a)), None)
     if given is None:
         given = sorted((a for a in assigned if a), key=_level_key)

@@ -13,6 +13,7 @@ from qtpy import QtGui
 
 from carmreg.logic.errors import CarmRegError
 from carmreg.logic.io import session as session_io
+from carmreg.logic.registration.level_check import LevelCheck
 
 LOG = logging.getLogger("carmreg.gui")
 
@@ -102,7 +103,7 @@ class WindowSession:
         levels = [{"in_image": True, "clicked_uv_px": None, "name_margin": None, **lv}
                   for lv in summary.get("levels") or []]
         result = SavedResult(pose, P, geometry, stages, levels, bool(summary.get("ok")),
-                             list(summary.get("warnings") or []), summary.get("level_check"))
+                             list(summary.get("warnings") or []), LevelCheck.from_dict(summary.get("level_check")))
         self.set_result(result)
         if summary.get("stale"):
             self.result_stale = True
@@ -255,7 +256,7 @@ class SavedResult:
     levels: list
     ok: bool
     warnings: list
-    level_check: dict | None
+    level_check: LevelCheck | None
     drr_line_integral: None = None
     convergence: list = field(default_factory=list)
     restored: bool = True

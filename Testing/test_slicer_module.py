@@ -227,7 +227,7 @@ def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_x
     parameters = sample_nodes["parameters"]
     parameters.SetParameter("CheckLevels", "false")  # named clicks taken as named: one labelling, faster
     result, ct, ct_landmarks, xray = module.slicer_nodes().register_nodes(parameters, cache_dir=str(tmp_path / "cache"))
-    assert result.level_check is None or result.level_check["mode"] == "named"
+    assert result.level_check is None or result.level_check.mode == "named"
     assert result.ok, result.warnings
     pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]
     assert len(pdes) == 3 and max(pdes) < 5.0

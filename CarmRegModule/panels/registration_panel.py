@@ -329,19 +329,19 @@ class RegistrationPanel(QtWidgets.QWidget):
         return {name: stage.mpde_mm for name, stage in self._done.items()}
 
 
-def level_check_html(check: dict | None) -> str:
-    """One line on the level names: status (coloured), assigned names, margin over the runner-up."""
-    if not check or not check.get("status"):
+def level_check_html(check) -> str:
+    """One line on the level names (``LevelCheck`` or None): status (coloured), assigned names, margin over the
+    runner-up."""
+    if not check:
         return ""
     from .result_panel import format_margin
 
-    colour = status_ink(check["status"])
-    assigned = check.get("assigned_labels") or []
-    text = f"<br>Level names: <b style='color:{colour}'>{check['status']}</b>"
-    if assigned:
-        text += f" ({', '.join(assigned)})"
-    text += f", margin {format_margin(check.get('margin'))}"
-    runner_up = check.get("runner_up_labels")
+    colour = status_ink(check.status)
+    text = f"<br>Level names: <b style='color:{colour}'>{check.status}</b>"
+    if check.assigned_labels:
+        text += f" ({', '.join(check.assigned_labels)})"
+    text += f", margin {format_margin(check.margin)}"
+    runner_up = check.runner_up_labels
     if runner_up:
         text += f" over {', '.join(runner_up)}"
     return text + "."

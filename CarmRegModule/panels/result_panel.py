@@ -20,6 +20,7 @@ import numpy as np
 from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.geometry.camera import POSE_NAMES
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.composite import MODES
 from carmreg.logic.report.style import status_ink
 
@@ -49,12 +50,12 @@ def format_margin(margin) -> str:
     return f"{margin:+.3f}"
 
 
-def ranked_hypotheses(check: dict) -> list[dict]:
+def ranked_hypotheses(check: LevelCheck) -> list[dict]:
     """The labellings considered, best first: the winner, the runner-up, then the registered ones by score (the
     refinement objective: lower is better), then those not registered (an implausible magnification). Each
     labelling once (its best fit): without clicks several starts can end on the same level."""
-    winner = list(check.get("winner_labels") or check.get("assigned_labels") or [])
-    runner_up = list(check.get("runner_up_labels") or [])
+    winner = list(check.winner_labels or check.assigned_labels)
+    runner_up = list(check.runner_up_labels or [])
 
     def key(h: dict):
         labels = list(h.get("labels") or [])
@@ -62,7 +63,7 @@ def ranked_hypotheses(check: dict) -> list[dict]:
         rank = 0 if labels == winner else 1 if labels == runner_up else 2
         return rank, not h.get("refined", True), float("inf") if score is None else float(score)
     out, seen = [], set()
-    for h in sorted(check.get("hypotheses") or [], key=key):  # no clicks: several fits may land on one level
+    for h in sorted(check.hypotheses, key=key):  # no clicks: several fits may land on one level
         labels = tuple(h.get("labels") or [])
         if labels not in seen:
             seen.add(labels)
@@ -215,44 +216,44 @@ class ResultPanel(QtWidgets.QWidget):
         self.accept_button.clicked.connect(self.accept_names_requested)
         return box  # the accept button sits at the top of the step (see __init__), shown when it can act
 
-    def set_level_check(self, check: dict | None, click_names: list[str] | None = None) -> None:
-        """Show ``result.level_check`` ({} or None: no identification ran); ``click_names`` = the clicks as
-        shown ('T10', '?1', ...) in the order the logic got them."""
-        check = check or {}
-        status = check.get("status")
+    def set_level_check(self, check: LevelCheck | None, click_names: list[str] | None = None) -> None:
+        """Show ``result.level_check`` (None: no identification ran); ``click_names`` = the clicks as shown
+        ('T10', '?1', ...) in the order the logic got them."""
+        check = check or LevelCheck("", "")
+        status = check.status or None
         colour = status_ink(status)
         self.level_status_color = colour if status else None
-        mode = check.get("mode")
-        self.level_mode_label.setText(MODE_TEXT.get(mode, mode or "-") if check else "-")
-        self.level_status_label.setText(status.upper() if status else ("-" if not check else "not checked"))
+        mode = check.mode or None
+        self.level_mode_label.setText(MODE_TEXT.get(mode, mode or "-"))
+        self.level_status_label.setText(status.upper() if status else "-")
         self.level_status_label.setStyleSheet(f"color: {colour}; font-weight: bold;")
-        message = check.get("message") or ""
+        message = check.message
         self.level_message_label.setText(message)
         self.level_message_label.setStyleSheet(f"color: {colour};" if status != "confident" else "")
         self.level_message_label.setVisible(bool(message))
-        labels = list(check.get("assigned_labels") or [])
+        labels = list(check.assigned_labels)
         names = list(click_names or [])
-        visible = list(check.get("visible_labels") or [])
+        visible = list(check.visible_labels)
         if labels and len(names) == len(labels):
             self.level_assigned_label.setText(arrow_list(names, labels))
         elif labels:
             self.level_assigned_label.setText(", ".join(labels))
         else:  # no clicks: the levels the found pose puts in the image
             self.level_assigned_label.setText(f"in the image: {', '.join(visible)}" if visible else "-")
-        margin = format_margin(check.get("margin")) if check else "-"
-        if check and margin.startswith(("+", "-")) and len(margin) > 1:
+        margin = format_margin(check.margin) if status else "-"
+        if status and margin.startswith(("+", "-")) and len(margin) > 1:
             from carmreg.logic.registration.level_confidence import ConfidenceRule
 
             t = ConfidenceRule().margin
             margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
         self.level_margin_label.setText(margin)
-        runner_up = check.get("runner_up_labels")
+        runner_up = check.runner_up_labels
         prefers = status == "contradicted" and mode in ("named", "partly_named")
         self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)
                                            if runner_up else "-")
         hypotheses = ranked_hypotheses(check)[:MAX_HYPOTHESES]
         self.hypotheses_table.setRowCount(len(hypotheses))
-        winner = list(check.get("winner_labels") or labels)
+        winner = list(check.winner_labels or labels)
         for row, h in enumerate(hypotheses):
             registered = h.get("refined", True)
             cells = [", ".join(h.get("labels") or []) or "-"] + [

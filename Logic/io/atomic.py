@@ -51,11 +51,14 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 
 
 def to_jsonable(obj):
-    """numpy scalars/arrays, tuples and paths -> plain JSON types (recursively); NaN/inf -> None."""
+    """numpy scalars/arrays, tuples, paths and objects with ``to_dict`` -> plain JSON types (recursively);
+    NaN/inf -> None."""
     import numpy as np
 
     if isinstance(obj, dict):
         return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if hasattr(obj, "to_dict"):  # typed results (e.g. LevelCheck) say how they are written
+        return to_jsonable(obj.to_dict())
     if isinstance(obj, list | tuple):
         return [to_jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):

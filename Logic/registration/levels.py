@@ -46,6 +46,7 @@ from carmreg.logic.registration.labellings import (
     identifiable_clicks,
     order_along_spine,
 )
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.registration.level_confidence import ConfidenceRule, Verdict, decide, decide_image_only
 
 
@@ -86,15 +87,13 @@ class LevelIdentification:
             out[i] = self.chosen.labels[k]
         return out
 
-    def as_dict(self) -> dict:
+    def summary(self) -> LevelCheck:
+        """The answer as the front doors show it and result.json records it (``level_check``)."""
         ru = self.runner_up
-        return {"mode": self.mode, "status": self.status, "margin": self.margin, "message": self.message,
-                "reasons": list(self.reasons), "checks": self.checks,
-                "assigned_labels": self.assigned_labels(), "click_indices": list(self.click_indices),
-                "winner_labels": list(self.winner.labels),
-                "runner_up_labels": list(ru.labels) if ru is not None else None,
-                "visible_labels": list(self.visible_labels),
-                "hypotheses": [f.as_dict() for f in self.fits]}
+        return LevelCheck(self.mode, self.status, self.margin, self.message, list(self.reasons), self.checks,
+                          self.assigned_labels(), list(self.click_indices), list(self.winner.labels),
+                          list(ru.labels) if ru is not None else None, list(self.visible_labels),
+                          [f.as_dict() for f in self.fits])
 
 
 def _message(mode: str, verdict: Verdict, chosen: LabellingFit, names: list | None = None) -> str:

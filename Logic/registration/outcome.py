@@ -43,7 +43,7 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
         if state.database else {},
         ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
-        level_check=state.identification.as_dict() if state.identification else None,
+        level_check=state.identification.summary() if state.identification else None,
         appearance=state.appearance, field_mask=state.mask,
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                 "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),

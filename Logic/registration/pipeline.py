@@ -294,7 +294,8 @@ class CarmRegLogic:
         state.identification = ident
         if ident.status == "ambiguous":
             state.warnings.append(ident.message)
-        return {"enabled": True, **ident.as_dict()}
+        # the answer itself is the result's level_check (result.json "level_check"), not repeated here
+        return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits)}
 
     def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
         """The levels stage's progress hook (``FitContext.on_labelling``): "labelling 3 of 7: T10, T11, T12"

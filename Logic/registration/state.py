@@ -24,6 +24,7 @@ from carmreg.logic.registration.depth import DepthResult
 from carmreg.logic.registration.fine import FineParameters, FineResult
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit, coarse_refine_parameters
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
     LevelIdentification,
@@ -132,7 +133,7 @@ class RegistrationResult:
     warnings: list
     parameters: RegistrationParameters
     inputs: dict = field(default_factory=dict)
-    level_check: dict | None = None  # LevelIdentification.as_dict(): mode, status, margin, assigned_labels ...
+    level_check: LevelCheck | None = None  # the level answer (registration.level_check); None: not checked
     appearance: Appearance | None = None  # the X-ray's polarity and storage, and the evidence
     field_mask: np.ndarray | None = None  # (rows, cols) exposed field of the X-ray
 

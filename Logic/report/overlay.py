@@ -18,6 +18,7 @@ import textwrap
 
 import numpy as np
 
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.composite import blend, normalise, xray_bone_bright
 from carmreg.logic.report.style import CLICK_COLOUR, answer_banner, level_marker
 
@@ -86,7 +87,8 @@ def _draw_banner(ax, banner: tuple[str, str, str], scale: float, rows: int, cols
 
 
 def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = None,
-                   level_check: dict | None = None, ok: bool = True, warnings: list[str] | tuple = ()) -> np.ndarray:
+                   level_check: LevelCheck | None = None, ok: bool = True, warnings: list[str] | tuple = ()
+                   ) -> np.ndarray:
     """(rows, cols, 3) uint8: the composite ``rgb`` with the levels, the clicks and the level answer's banner
     drawn on it at the image's own size (module docstring)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -98,7 +100,7 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
     canvas = FigureCanvasAgg(fig)
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     ax.set_axis_off()
-    draw_overlay(ax, rgb, levels, clicked, (level_check or {}).get("status") == "contradicted", scale)
+    draw_overlay(ax, rgb, levels, clicked, bool(level_check and level_check.contradicted), scale)
     banner = answer_banner(level_check, ok, list(warnings))
     if banner is not None:
         _draw_banner(ax, banner, scale, rows, cols)
@@ -108,7 +110,7 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
 
 
 def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list[dict],
-                  clicked: dict | None = None, mask: np.ndarray | None = None, level_check: dict | None = None,
+                  clicked: dict | None = None, mask: np.ndarray | None = None, level_check: LevelCheck | None = None,
                   bone_dark: bool | None = None, ok: bool = True, warnings: list[str] | tuple = ()):
     """The overlay as a PIL RGB image of the X-ray's size: ``screen_composite`` (``bone_dark`` None: the X-ray
     as stored, not flipped) drawn on by ``render_overlay``. ``mask``: the exposed field (default: found)."""

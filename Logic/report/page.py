@@ -4,7 +4,7 @@ What the page shows, top to bottom:
 
 - the title, the time it was made and the line **"Research software - not for diagnosis"**;
 - the **level answer** in words and colour (green confident, yellow proposed from the image alone, amber
-  ambiguous, red contradicted, grey not checked) with its reason (``level_check["message"]``) and the failed
+  ambiguous, red contradicted, grey not checked) with its reason (``LevelCheck.message``) and the failed
   checks when ``ok`` is False;
 - the **overlay as on screen**: the X-ray (bone bright, inside its exposed field) with the DRR at the found pose
   blended in amber (the window's default "blend" mode; the window passes its own composite), every CT-labelled
@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
 from carmreg.logic.report.style import level_answer
 
@@ -105,7 +106,7 @@ def _inputs_block(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def _labellings_block(check: dict | None, appearance=None) -> str:
+def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     """How the levels were named: the X-ray's appearance as found, the mode and every labelling registered with
     its score, best first."""
     seen_as = (f"X-ray: {appearance.note}; stored as {appearance.storage.replace('-', ' ')}; matches the CT "
@@ -115,8 +116,8 @@ def _labellings_block(check: dict | None, appearance=None) -> str:
     mode = {"named": "named clicks, checked against the names shifted up and down",
             "partly_named": "partly named clicks, the others named from the image",
             "unnamed": "unnamed clicks, named from the image",
-            "image_only": "no clicks: levels from the image alone"}.get(check.get("mode"), str(check.get("mode")))
-    tried = sorted((h for h in check.get("hypotheses") or [] if h.get("refined", True) and h.get("labels")),
+            "image_only": "no clicks: levels from the image alone"}.get(check.mode, str(check.mode))
+    tried = sorted((h for h in check.hypotheses if h.get("refined", True) and h.get("labels")),
                    key=lambda h: float(h.get("score", np.inf)))
     seen, parts = set(), []
     for h in tried:
@@ -159,8 +160,8 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
 
     bone_dark = result_bone_dark(result, bone_dark)
     doc = result_dict(result)
-    check = doc.get("level_check") or None
-    status = (check or {}).get("status")
+    check = result.level_check
+    status = check.status if check else None
     rgb = composite_rgb if composite_rgb is not None else screen_composite(
         xray_pixels, result.drr_line_integral, bone_dark, mask=getattr(result, "field_mask", None))
     drawn = drawn_mpde_mm(doc["levels"])

@@ -40,9 +40,8 @@ from carmreg.logic.geometry.camera import pixel_to_detector_lps
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from carmreg.logic.io.transaction import FolderTransaction
 from carmreg.logic.report.overlay import result_overlay_image
-from carmreg.logic.report.style import hex_rgb, status_ink
 
-__all__ = ["RESULT_FILES", "level_banner", "result_dict", "save_png", "save_result", "to_uint8", "write_drr_nrrd"]
+__all__ = ["RESULT_FILES", "result_dict", "save_png", "save_result", "to_uint8", "write_drr_nrrd"]
 
 
 def result_dict(result) -> dict:
@@ -85,23 +84,6 @@ def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5
     return (np.clip((image - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
 
 
-MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
-             "image_only": "image alone (no clicks)"}
-
-
-def level_banner(level_check: dict | None) -> tuple[str, tuple[int, int, int]] | None:
-    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up, with
-    the status's colour on a dark background (``style.status_ink``) as (r, g, b)."""
-    if not level_check:
-        return None
-    status = str(level_check.get("status", ""))
-    margin = level_check.get("margin")
-    runner = level_check.get("runner_up_labels")
-    text = f"Levels from {MODE_TEXT.get(level_check.get('mode'), level_check.get('mode'))}: {status.upper()}"
-    if margin is not None and np.isfinite(margin):
-        text += f" (margin {margin:+.3f}"
-        text += f" over {'-'.join([runner[0], runner[-1]]) if len(runner) > 1 else runner[0]})" if runner else ")"
-    return text, hex_rgb(status_ink(status))
 
 
 def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:

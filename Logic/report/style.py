@@ -19,6 +19,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from carmreg.logic.registration.level_check import LevelCheck
+
 
 @dataclass(frozen=True)
 class StatusColour:
@@ -82,22 +84,18 @@ def level_marker(level: dict, contradicted: bool, with_text: bool = True) -> Lev
 
 # ----------------------------------------------------------------------------------------------- the answer
 
-def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
+def level_answer(check: LevelCheck | None, ok: bool = True, detail: bool = True) -> tuple[str, str, str]:
     """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
     the margin and how to read it to the reason."""
-    check = level_check or {}
-    status = check.get("status")
+    status = check.status if check else None
     headline = STATUS_WORDS.get(status, str(status).upper())
-    mode = check.get("mode")
-    if mode == "image_only":
-        names = ", ".join(check.get("visible_labels") or []) or "none"
-    else:
-        names = ", ".join(check.get("assigned_labels") or [])
+    names = ", ".join(check.names()) if check else ""
+    if check and check.mode == "image_only":
+        names = names or "none"
     if names:
         headline += f": {names}"
-    reason = check.get("message") or ("the level check was not run (fully named clicks, level check off)"
-                                      if not check else "")
-    margin = check.get("margin")
+    reason = check.message if check else "the level check was not run (fully named clicks, level check off)"
+    margin = check.margin if check else None
     if detail and margin is not None and math.isfinite(margin):
         from carmreg.logic.registration.level_confidence import ConfidenceRule
 
@@ -107,13 +105,46 @@ def level_answer(level_check: dict | None, ok: bool = True, detail: bool = True)
     return headline, reason.strip(), colour
 
 
-def answer_banner(level_check: dict | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
+def answer_banner(level_check: LevelCheck | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
     """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
     the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
     reason; None when there is nothing to say (level check off and every check passed)."""
     if not level_check and ok:
         return None
     headline, reason, colour = level_answer(level_check, ok, detail=False)
-    if not ok and (level_check or {}).get("status") != "contradicted":
+    if not ok and not (level_check and level_check.contradicted):
         headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
     return headline, reason, colour
+
+
+MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
+             "image_only": "image alone (no clicks)"}
+
+
+def level_banner(check: LevelCheck | None) -> tuple[str, tuple[int, int, int]] | None:
+    """One line for the surgeon: how the levels were named, the status and the margin to the runner-up, with
+    the status's colour on a dark background (``status_ink``) as (r, g, b)."""
+    if not check:
+        return None
+    text = f"Levels from {MODE_TEXT.get(check.mode, check.mode)}: {check.status.upper()}"
+    margin, runner = check.margin, check.runner_up_labels
+    if margin is not None and math.isfinite(margin):
+        text += f" (margin {margin:+.3f}"
+        text += f" over {'-'.join([runner[0], runner[-1]]) if len(runner) > 1 else runner[0]})" if runner else ")"
+    return text, hex_rgb(status_ink(check.status))
+
+
+def level_summary(check: LevelCheck) -> str:
+    """The levels stage in two lines for the command line: which names, from what, how sure (margin = score of
+    the best other labelling minus the chosen one's; the objective is 1 - gradient correlation + landmark
+    terms)."""
+    if check.mode == "image_only":
+        what = f"levels in view (from the image alone): {', '.join(check.visible_labels) or 'none'}"
+    elif check.mode == "named":
+        what = f"clicked names {', '.join(check.assigned_labels)} checked against shifted names"
+    else:
+        what = f"clicks named {', '.join(check.assigned_labels)} ({check.mode.replace('_', ' ')})"
+    margin, runner = check.margin, check.runner_up_labels
+    sure = check.status.upper() + (f", margin {margin:+.3f}" if margin is not None else "")
+    return (f"level identification: {what}\n  {sure}" + (f" over {', '.join(runner)}" if runner else "")
+            + f": {check.message}")

@@ -88,7 +88,7 @@ def run(ct, centroids, sim, xray, clicks, params) -> dict:
     fine = stages.get("fine")
     landmark = evaluate(result.geometry.projection_matrix(fine.pose), centroids.as_dict(), truth, clicked) \
         if fine is not None and fine.mpde_mm is not None else None
-    lc = result.level_check or {}
+    lc = result.level_check.to_dict() if result.level_check else {}
     return {"seconds": seconds, "ok": result.ok, "status": lc.get("status"), "margin": lc.get("margin"),
             "assigned": lc.get("assigned_labels"), "truth_labels": list(sim.clicks.labels),
             "given": list(l or "" for l in clicks.labels),

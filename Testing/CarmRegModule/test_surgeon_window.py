@@ -258,7 +258,7 @@ def test_progress_moves_inside_the_levels_stage_and_cancel_keeps_finished_stages
     assert window._reg_state.database is database  # not rebuilt
     assert [s.name for s in window.result.stages] == ["database", "spatial", "levels", "depth", "fine", "refine",
                                                       "final_drr"]
-    assert len(window.result.level_check["assigned_labels"]) == 3
+    assert len(window.result.level_check.assigned_labels) == 3
 
 
 def test_time_left_estimate_uses_the_pace_of_this_machine():
@@ -386,6 +386,7 @@ def test_a_ct_point_that_breaks_the_spine_order_is_warned_about(window):
 
 
 def test_no_clicks_lists_each_level_once_and_metrics_have_their_names(xray_window):
+    from carmreg.logic.registration.level_check import LevelCheck
     from carmreg.panels.result_panel import ranked_hypotheses
 
     check = {"winner_labels": ["T11"], "runner_up_labels": ["T10"],
@@ -393,7 +394,7 @@ def test_no_clicks_lists_each_level_once_and_metrics_have_their_names(xray_windo
                             {"labels": ["T11"], "score": 0.50, "refined": True},
                             {"labels": ["T10"], "score": 0.57, "refined": True},
                             {"labels": ["T10"], "score": 0.55, "refined": True}]}
-    ranked = ranked_hypotheses(check)
+    ranked = ranked_hypotheses(LevelCheck.from_dict({"mode": "image_only", "status": "proposed", **check}))
     assert [(h["labels"], h["score"]) for h in ranked] == [(["T11"], 0.50), (["T10"], 0.55)]
     combo = xray_window.registration_panel.metric_combo
     assert combo.itemText(0) == "Gradient correlation (GC)"

@@ -220,6 +220,7 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
     """A RegistrationResult stand-in with a level_check, for the display without running the pipeline."""
     from carmreg.logic.geometry.camera import CarmGeometry, CarmPose
     from carmreg.logic.io.landmarks import level_index
+    from carmreg.logic.registration.level_check import LevelCheck
 
     geometry = CarmGeometry(win.xray.intrinsics, (0.0, 0.0, 0.0), 600.0)
     pose = CarmPose(0, 0, 0, 0, 0, 0)
@@ -239,8 +240,8 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
              "click_indices": list(range(len(assigned)) if click_indices is None else click_indices)}
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=[], levels=levels, drr_line_integral=None, convergence=[],
-                           ok=status != "contradicted", warnings=[], magnification=1.6, level_check=check,
-                           appearance=None, field_mask=None)
+                           ok=status != "contradicted", warnings=[], magnification=1.6,
+                           level_check=LevelCheck.from_dict(check), appearance=None, field_mask=None)
 
 
 def test_assigned_names_show_on_the_clicks_and_can_be_accepted_and_undone(xray_window):
@@ -348,9 +349,9 @@ def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window):
     window.run_registration(wait=True)
     assert window.dialogs.messages == [], window.dialogs.messages
     check = window.result.level_check
-    assert check["mode"] == "unnamed"
-    assert check["assigned_labels"] == ["T10", "T11", "T12"], check
-    assert check["status"] in ("confident", "ambiguous", "contradicted")
+    assert check.mode == "unnamed"
+    assert check.assigned_labels == ["T10", "T11", "T12"], check
+    assert check.status in ("confident", "ambiguous", "contradicted")
     texts = sorted(_texts(window.xray_view).values())
     assert texts == [f"?1 {ARROW} T10", f"?2 {ARROW} T11", f"?3 {ARROW} T12"]
     rp = window.result_panel

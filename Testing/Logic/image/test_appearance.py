@@ -126,6 +126,6 @@ def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
     result = CarmRegLogic().register(ct, centroids, mirrored, Landmarks2D([None] * len(uv), uv), params)
     assert result.appearance.orientation != "as-stored" or not result.appearance.orientation_clear
-    assert result.level_check["status"] != "confident"
+    assert result.level_check.status != "confident"
     if result.appearance.orientation != "as-stored":
         assert not result.ok and any("mirrored or rotated" in w for w in result.warnings)

@@ -212,10 +212,10 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(sample, simulat
     clicks = Landmarks2D([None] * 3, sim.clicks.uv_px[shuffled])
     result, score = _register(sample, simulated, clicks, tmp_path)
     check = result.level_check
-    assert check["mode"] == "unnamed" and check["status"] == "confident", check["message"]
-    assert check["click_indices"] == [0, 1, 2]
-    assert check["assigned_labels"] == [sim.clicks.labels[i] for i in shuffled]
-    assert check["margin"] >= 0.02 and check["runner_up_labels"] != check["winner_labels"]
+    assert check.mode == "unnamed" and check.status == "confident", check.message
+    assert check.click_indices == [0, 1, 2]
+    assert check.assigned_labels == [sim.clicks.labels[i] for i in shuffled]
+    assert check.margin >= 0.02 and check.runner_up_labels != check.winner_labels
     assert result.ok and score["all_named_correctly"]
     assert np.median(score["unfitted_pde_pose_mm"]) < 3.0, score["levels"]
 
@@ -226,9 +226,9 @@ def test_names_one_level_off_are_never_reported_confident(sample, simulated, tmp
     wrong = Landmarks2D(shifted_labels(sim.clicks.labels, 1, sample[2].labels), sim.clicks.uv_px)
     result, _ = _register(sample, simulated, wrong, tmp_path)
     check = result.level_check
-    assert check["mode"] == "named" and check["status"] in ("contradicted", "ambiguous"), check
-    assert check["winner_labels"] == list(sim.clicks.labels)
-    if check["status"] == "contradicted":
+    assert check.mode == "named" and check.status in ("contradicted", "ambiguous"), check
+    assert check.winner_labels == list(sim.clicks.labels)
+    if check.status == "contradicted":
         assert not result.ok and any("CONTRADICTED" in w for w in result.warnings)
 
 
@@ -236,8 +236,8 @@ def test_names_one_level_off_are_never_reported_confident(sample, simulated, tmp
 def test_without_clicks_the_image_alone_names_the_levels_in_view(sample, simulated, tmp_path):
     result, score = _register(sample, simulated, Landmarks2D([], np.zeros((0, 2))), tmp_path)
     check = result.level_check
-    assert check["mode"] == "image_only" and check["assigned_labels"] == []
-    assert set(simulated[0].clicks.labels) <= set(check["visible_labels"])
+    assert check.mode == "image_only" and check.assigned_labels == []
+    assert set(simulated[0].clicks.labels) <= set(check.visible_labels)
     assert score["all_named_correctly"], score["levels"]
     assert np.median(score["unfitted_pde_pose_mm"]) < 3.0
     assert [s.name for s in result.stages if s.extra.get("skipped")] == ["depth", "fine"]
@@ -258,13 +258,12 @@ def test_partly_named_clicks_that_cannot_be_consecutive_are_refused_before_any_w
 
 
 def test_level_banner_states_mode_status_margin_and_runner_up():
-    from carmreg.logic.report.result_files import level_banner
+    from carmreg.logic.registration.level_check import LevelCheck
+    from carmreg.logic.report.style import level_banner
 
-    text, rgb = level_banner({"mode": "unnamed", "status": "confident", "margin": 0.121,
-                              "runner_up_labels": ["T11", "T12", "L1"]})
+    text, rgb = level_banner(LevelCheck("unnamed", "confident", 0.121, runner_up_labels=["T11", "T12", "L1"]))
     assert text == "Levels from unnamed clicks: CONFIDENT (margin +0.121 over T11-L1)"
     assert rgb == (0x69, 0xDB, 0x7C)  # the confident green of report.style, the window's
-    text, rgb = level_banner({"mode": "image_only", "status": "proposed", "margin": float("inf"),
-                              "runner_up_labels": None})
+    text, rgb = level_banner(LevelCheck("image_only", "proposed", float("inf")))
     assert text == "Levels from image alone (no clicks): PROPOSED" and rgb == (0xFF, 0xE0, 0x66)
     assert level_banner(None) is None

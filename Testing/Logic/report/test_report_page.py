@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
+from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.registration.pipeline import RegistrationParameters, RegistrationResult, StageResult
 from carmreg.logic.report.page import drawn_mpde_mm, write_report_pdf
 from carmreg.logic.report.style import answer_banner, level_answer
@@ -42,7 +43,7 @@ def _result(status: str) -> RegistrationResult:
                               drr_line_integral=xray[::-1].copy(), xray_line_integral=xray, convergence=[],
                               trajectory=[], similarity_maps={}, database_grid={}, ok=status != "contradicted",
                               warnings=[check["message"]] if status == "contradicted" else [],
-                              parameters=RegistrationParameters(), level_check=check,
+                              parameters=RegistrationParameters(), level_check=LevelCheck.from_dict(check),
                               inputs={"ct": "/data/ct.nrrd", "xray": "/data/xray.dcm", "geometry_sources":
                                       dict(intr.sources)})
 
