@@ -17,6 +17,12 @@ The larger score decides. When ``clarity < CLEAR_POLARITY_GC`` the database's po
 too coarse to tell; the pipeline then refines each polarity's best DRR pose on the image alone and compares the
 refined GC (``decide_polarity`` with ``refined=``), which is recorded as the evidence instead.
 
+A file that *states* its polarity (DICOM PixelIntensityRelationshipSign, ``header_explicit``) is evidence too. When
+the image agrees, the polarity is clear whatever the gap. When the image disagrees, the two are in conflict: the
+file's word is used (the image's verdict rests on the exposed field and the DRRs, which a collimator glow or an
+unusual view can mislead - seen on a linear flat-panel image whose field was mis-found), the polarity is *not*
+clear, so no level answer is confident, and the note says to check the image and the tags.
+
 Storage
 -------
 Bone-dark images are converted to attenuation either as linear intensity, ``L = -log(S / S_ref)``, or as an
@@ -173,9 +179,10 @@ def image_polarity(scores: dict) -> tuple[str, float]:
 
 
 def decide_polarity(database: dict, refined: dict | None, requested: str, header_bone_dark: bool,
-                    header_source: str, storage: dict | None = None) -> Appearance:
+                    header_source: str, storage: dict | None = None, header_explicit: bool = False) -> Appearance:
     """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
-    the ``storage_gc`` when known (else see ``Appearance.set_storage``)."""
+    the ``storage_gc`` when known (else see ``Appearance.set_storage``); ``header_explicit``: the file states its
+    polarity (rather than a default for its type)."""
     evidence, threshold, by = (refined, CLEAR_REFINED_GC, "image (refined)") if refined is not None \
         else (database, CLEAR_POLARITY_GC, "image")
     seen, gap = image_polarity(evidence)
@@ -187,6 +194,13 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         note = (f"{requested} as set by the user, but the image looks {seen} (GC gap {gap:.3f}): check the "
                 "polarity setting" if contradicted else f"{requested} as set by the user")
         clear = not contradicted
+    elif header_explicit and seen != header:
+        polarity, by, clear = header, "header (the image disagrees)", False
+        note = (f"{header} as the file states ({header_source}), but the image looks {seen} (GC gap {gap:.3f}): "
+                "not trusted; check the image's polarity and the file's tags, or set the polarity by hand")
+    elif header_explicit:
+        polarity, clear = header, True
+        note = f"{header}, as the file states ({header_source}) and the image agrees (GC gap {gap:.3f})"
     elif clear:
         polarity = seen
         note = f"{seen}, found from the image (GC gap {gap:.3f} >= {threshold})"

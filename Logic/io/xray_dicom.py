@@ -18,6 +18,7 @@ from carmreg.logic.io.dicom_common import (
 from carmreg.logic.io.limits import check_dicom_size
 from carmreg.logic.io.xray_image import (
     DEFAULT_BONE_DARK,
+    EXPLICIT_POLARITY_SOURCE,
     PRIVATE_CREATOR,
     PRIVATE_GROUP,
     PRIVATE_PRINCIPAL_POINT,
@@ -133,8 +134,7 @@ def _dicom_bone_dark(ds, modality: str, monochrome1: bool) -> tuple[bool, str]:
     sign = ds.get("PixelIntensityRelationshipSign")
     if isinstance(sign, int) and sign in (1, -1):
         dark = (int(sign) == 1) != monochrome1
-        return dark, "DICOM (0028,1041) PixelIntensityRelationshipSign" + (" + MONOCHROME1" if monochrome1
-                                                                           else "")
+        return dark, EXPLICIT_POLARITY_SOURCE + (" + MONOCHROME1" if monochrome1 else "")
     default = DEFAULT_BONE_DARK.get(modality, True)
     return default, f"default for modality {modality or 'unknown'} (bone {'dark' if default else 'bright'})"
 

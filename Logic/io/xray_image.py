@@ -22,6 +22,8 @@ SOP_CLASS_UIDS = {
 PRIVATE_GROUP = 0x0029
 PRIVATE_CREATOR = "CarmReg"
 PRIVATE_PRINCIPAL_POINT = 0x01  # (0029,xx01) DS: u0 \ v0 in px (column, row)
+EXPLICIT_POLARITY_SOURCE = "DICOM (0028,1041) PixelIntensityRelationshipSign"
+"""``XrayImage.sources["bone_dark"]`` of a file that states its polarity (the rest are defaults for the type)."""
 DEFAULT_BONE_DARK = {"XA": True, "RF": True, "DX": False, "CR": False}
 MAX_XRAY_PIXELS = 64 * 1024**2
 """Largest single X-ray frame accepted (pixels); real detectors are below ~20 Mpx."""

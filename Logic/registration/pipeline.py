@@ -51,6 +51,7 @@ from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.io.xray_image import EXPLICIT_POLARITY_SOURCE
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
@@ -63,7 +64,7 @@ from carmreg.logic.registration.levels import (
     identify_levels,
 )
 from carmreg.logic.registration.outcome import build_result
-from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight, require_ready
+from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 from carmreg.logic.registration.spatial import spatial_search
 from carmreg.logic.registration.state import (
@@ -113,7 +114,7 @@ class CarmRegLogic:
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
         check_xray_content(xray.pixels, xray.source)
         check_ct_content(ct.hu, ct.source)
-        require_ready(preflight(ct_landmarks, xray_landmarks))
+        preflight(ct_landmarks, xray_landmarks).raise_first()
         pairs, notes = given_pairs(ct_landmarks, xray_landmarks)
         check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
@@ -190,8 +191,9 @@ class CarmRegLogic:
         if p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
             refined = self._refined_polarity_scores(state, scores)
-        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
-                                               xray.sources.get("bone_dark", ""))
+        source = xray.sources.get("bone_dark", "")
+        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark, source,
+                                               header_explicit=source.startswith(EXPLICIT_POLARITY_SOURCE))
         state.known_gc = None
         if a.bone_dark:  # a bone-bright image is attenuation-like already: no storage to choose
             gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)

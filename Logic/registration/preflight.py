@@ -3,8 +3,9 @@ the Slicer module.
 
 ``preflight`` says what is missing as a list of sentences (empty = ready) and which level identification the
 clicks ask for (``click_mode``): ``named`` (every X-ray click named), ``partly_named``, ``unnamed`` or
-``image_only`` (no clicks). The window shows the sentences and enables Register; ``CarmRegLogic.prepare`` raises
-the first one as a ``LandmarkError`` (the command line's one line, exit code 2). The rules:
+``image_only`` (no clicks). The window shows the sentences and enables Register; ``CarmRegLogic.prepare`` (the
+command line's and the Slicer module's way in) raises the first one with ``Readiness.raise_first``: one line, exit
+code 2. The rules:
 
 - a CT, an X-ray and its geometry (source-to-detector distance, pixel spacing);
 - at least 3 named CT centroids;
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from carmreg.logic.errors import CarmRegError, LandmarkError
+from carmreg.logic.errors import GeometryError, InputFileError, LandmarkError
 from carmreg.logic.geometry.camera import in_detector
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, pair_by_label, spine_order_warnings
@@ -42,10 +43,20 @@ class Readiness:
     mode: str
     problems: list[str] = field(default_factory=list)
     common_levels: list[str] = field(default_factory=list)
+    kinds: list[type] = field(default_factory=list)   # the CarmRegError class of each problem
 
     @property
     def ready(self) -> bool:
         return not self.problems
+
+    def add(self, kind: type, problem: str) -> None:
+        self.kinds.append(kind)
+        self.problems.append(problem)
+
+    def raise_first(self) -> None:
+        """Raise the first problem as its CarmRegError (the command line's one line, exit code 2)."""
+        if self.problems:
+            raise self.kinds[0](self.problems[0])
 
 
 def click_mode(clicks: Landmarks2D) -> str:
@@ -65,21 +76,20 @@ def preflight(ct_landmarks: Landmarks3D, clicks: Landmarks2D, *, ct_loaded: bool
     mode = click_mode(clicks)
     ct_names = ct_level_names(ct_landmarks)
     readiness = Readiness(mode, common_levels=[lb for lb in ct_names if lb in set(clicks.labels)])
-    problems = readiness.problems
     if not ct_loaded:
-        problems.append("no CT loaded: load the preoperative CT")
+        readiness.add(InputFileError, "no CT loaded: load the preoperative CT")
     if not xray_loaded:
-        problems.append("no X-ray loaded: load the intraoperative X-ray")
+        readiness.add(InputFileError, "no X-ray loaded: load the intraoperative X-ray")
     elif not geometry_known:
-        problems.append("the X-ray geometry is incomplete: give the source-to-detector distance and the pixel "
-                        "spacing (or choose a device preset)")
+        readiness.add(GeometryError, "the X-ray geometry is incomplete: give the source-to-detector distance and "
+                                     "the pixel spacing (or choose a device preset)")
     if len(ct_names) < MIN_CT_CENTROIDS:
-        problems.append(f"only {len(ct_names)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: label at least "
-                        f"{MIN_CT_CENTROIDS} vertebrae in the CT")
+        readiness.add(LandmarkError, f"only {len(ct_names)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: "
+                                     f"label at least {MIN_CT_CENTROIDS} vertebrae in the CT")
         return readiness
     problem = _clicks_problem(ct_landmarks, clicks, mode)
     if problem:
-        problems.append(problem)
+        readiness.add(LandmarkError, problem)
     return readiness
 
 
@@ -100,11 +110,6 @@ def _clicks_problem(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -
     return None
 
 
-def require_ready(readiness: Readiness) -> None:
-    """Raise the first problem (``LandmarkError`` for clicks and centroids, else ``CarmRegError``)."""
-    if readiness.problems:
-        first = readiness.problems[0]
-        raise (LandmarkError if "click" in first or "centroid" in first or "level" in first else CarmRegError)(first)
 
 
 def given_pairs(ct_landmarks: Landmarks3D, clicks: Landmarks2D) -> tuple[Pairs | None, list[str]]:

@@ -69,7 +69,8 @@ def run_case(ct, centroids, sim, xray, params, clicks=None):
     fine_pose = next(s.pose for s in result.stages if s.name == "fine")
     landmark_score = evaluate(result.geometry.projection_matrix(fine_pose), centroids.as_dict(), truth, fitted)
     return {"seed": sim.seed, "ok": result.ok, "total_s": total, "stages": stages, "score": score,
-            "landmark_score": landmark_score, "level_check": result.level_check.to_dict() if result.level_check else None,
+            "landmark_score": landmark_score,
+            "level_check": result.level_check.to_dict() if result.level_check else None,
             "pose_true": sim.pose.as_dict(), "pose_found": result.pose.as_dict(),
             "spatial_per_metric": stages["spatial"]["per_metric"]}
 

@@ -59,6 +59,23 @@ def test_the_users_polarity_wins_but_a_clear_contradiction_is_not_trusted():
     assert (refined.polarity, refined.decided_by, refined.clear) == ("bone-bright", "image (refined)", True)
 
 
+def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_conflict_never_trusted():
+    """DICOM PixelIntensityRelationshipSign is evidence: agreeing settles a close call; disagreeing (even by a clear
+    GC gap, as a mis-found field gave on a linear flat-panel image) keeps the file's word and is not trusted."""
+    source = "DICOM (0028,1041) PixelIntensityRelationshipSign"
+    clear_bright = {"bone-dark": 0.28, "bone-bright": 0.38}
+    conflict = decide_polarity(clear_bright, None, "auto", True, source, None, header_explicit=True)
+    assert (conflict.polarity, conflict.clear, conflict.trusted) == ("bone-dark", False, False)
+    assert conflict.image_polarity == "bone-bright" and "image looks bone-bright" in conflict.note
+    assert decide_polarity(clear_bright, None, "auto", True, "default for modality RF", None).polarity == "bone-bright"
+    close_dark = {"bone-dark": 0.30, "bone-bright": 0.28}
+    agreed = decide_polarity(close_dark, None, "auto", True, source, None, header_explicit=True)
+    assert (agreed.polarity, agreed.clear) == ("bone-dark", True) and "the image agrees" in agreed.note
+    assert not decide_polarity(close_dark, None, "auto", True, source, None).clear  # not stated: the image alone
+    user = decide_polarity(clear_bright, None, "bone-bright", True, source, None, header_explicit=True)
+    assert (user.polarity, user.decided_by, user.clear) == ("bone-bright", "user", True)  # the user's word rules
+
+
 @pytest.fixture(scope="module")
 def case(sample_ct):
     """One realistic simulated AP case (512 px, bone dark as stored) of the sample CT, T8 in the middle."""
