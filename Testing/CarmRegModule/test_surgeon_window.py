@@ -15,6 +15,8 @@ import pytest
 from gui_helpers import ready, scene_tolerance, view_pos, wheel
 from qtpy import QtCore
 
+from carmreg.logic.registration.level_check import LevelCheck
+
 pytestmark = pytest.mark.gui
 ARROW = "\u2192"
 
@@ -56,7 +58,7 @@ def _named_result(win, names, pdes, status="confident", winner=None, fine_mpde=0
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=stages, levels=levels, drr_line_integral=None, convergence=[],
                            ok=status != "contradicted", warnings=[] if status != "contradicted" else [message],
-                           magnification=1.6, level_check=check)
+                           magnification=1.6, level_check=LevelCheck.from_dict(check))
 
 
 def _three_named_clicks(win):
@@ -386,7 +388,6 @@ def test_a_ct_point_that_breaks_the_spine_order_is_warned_about(window):
 
 
 def test_no_clicks_lists_each_level_once_and_metrics_have_their_names(xray_window):
-    from carmreg.logic.registration.level_check import LevelCheck
     from carmreg.panels.result_panel import ranked_hypotheses
 
     check = {"winner_labels": ["T11"], "runner_up_labels": ["T10"],

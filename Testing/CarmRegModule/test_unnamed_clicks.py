@@ -355,7 +355,7 @@ def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window):
     texts = sorted(_texts(window.xray_view).values())
     assert texts == [f"?1 {ARROW} T10", f"?2 {ARROW} T11", f"?3 {ARROW} T12"]
     rp = window.result_panel
-    assert rp.level_status_label.text() == check["status"].upper()
+    assert rp.level_status_label.text() == check.status.upper()
     assert rp.level_assigned_label.text() == f"?1 {ARROW} T10, ?2 {ARROW} T11, ?3 {ARROW} T12"
     assert "unnamed" in rp.level_mode_label.text()
     window.accept_assigned_names(ask=False)
