@@ -41,8 +41,10 @@ against every other DRR of the database (half the grid each way, enough to find 
 
 When another orientation wins, the image is refused for registration (the pipeline's checks: ``ok`` false, "fix
 the display") and no level answer is confident. When the stored orientation wins by less than
-``CLEAR_ORIENTATION_GC`` the orientation is *unclear*: a warning, since a near-symmetric view (an AP lumbar spine)
-can look alike mirrored.
+``CLEAR_ORIENTATION_GC`` the orientation is *unclear*: a warning, and no level answer is confident either - a
+mirrored display of a near-symmetric view can win as stored by a hair (seen on the appearance benchmark: a mirrored
+intensifier image led as stored by 0.016 GC, with its polarity misjudged and the wrong levels one margin short of
+confident), so a hair's lead is not evidence (``trusted_appearance``).
 
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
@@ -66,6 +68,13 @@ CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by t
 ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
                 "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
                 "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
+
+
+def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -> bool:
+    """Whether a level answer may be confident on this appearance: the polarity clear, and the image matching the
+    CT best as stored by a clear lead (``CLEAR_ORIENTATION_GC``). Also applied to recorded runs
+    (``Testing/Benchmarks/calibrate_confidence.py``)."""
+    return bool(clear and orientation == "as-stored" and orientation_clear)
 
 
 @dataclass
@@ -94,8 +103,8 @@ class Appearance:
 
     @property
     def trusted(self) -> bool:
-        """The polarity is clear and the image matches the CT best as stored: a level answer may be confident."""
-        return self.clear and self.orientation == "as-stored"
+        """A level answer may be confident (``trusted_appearance``)."""
+        return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
 
     def set_storage(self, gc_by_storage: dict) -> None:
         """Record the best GC of each conversion (``storage_gc``) and, for a bone-dark image, use the

@@ -76,6 +76,19 @@ def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_confl
     assert (user.polarity, user.decided_by, user.clear) == ("bone-bright", "user", True)  # the user's word rules
 
 
+def test_only_a_clear_polarity_and_a_clear_lead_of_the_stored_orientation_are_trusted():
+    """A mirrored display of a near-symmetric view can lead as stored by a hair: no confident answer on it."""
+    from carmreg.logic.image.appearance import trusted_appearance
+
+    assert trusted_appearance(True, "as-stored", True)
+    assert not trusted_appearance(True, "as-stored", False)          # stored leads by < CLEAR_ORIENTATION_GC
+    assert not trusted_appearance(True, "mirrored-left-right", True)  # another orientation matches best
+    assert not trusted_appearance(False, "as-stored", True)           # the polarity is unclear or in conflict
+    a = decide_polarity({"bone-dark": 0.50, "bone-bright": 0.20}, None, "auto", True, "PNG", None)
+    a.set_orientation({"as-stored": 0.40, "mirrored-left-right": 0.39, "flipped-up-down": 0.2, "turned-180": 0.2})
+    assert a.orientation == "as-stored" and not a.orientation_clear and not a.trusted
+
+
 @pytest.fixture(scope="module")
 def case(sample_ct):
     """One realistic simulated AP case (512 px, bone dark as stored) of the sample CT, T8 in the middle."""
