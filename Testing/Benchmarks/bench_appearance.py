@@ -68,7 +68,10 @@ class CaseMaker:
         sample = sample_case()
         self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
         second = load_second_ct()
-        if second is not None:
+        if second is None:
+            print("bench_appearance: the second CT (../shared) is not found: every case uses the chest CT",
+                  file=sys.stderr, flush=True)
+        else:
             self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
         self.parts = {}
 
@@ -396,6 +399,8 @@ def main(argv=None) -> int:
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--half", choices=("all", "tune", "report"), default="all",
                         help="only the cases of this half (tune = even index, report = odd)")
+    parser.add_argument("--ct", choices=("any", "chest", "abdomen"), default="any",
+                        help="only the cases of this CT (abdomen = the second CT: case index % 3 == 2)")
     parser.add_argument("--variants", default=",".join(app.VARIANTS))
     parser.add_argument("--modes", default="unnamed,named,wrong")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
@@ -432,7 +437,8 @@ def main(argv=None) -> int:
     maker = CaseMaker()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for case in range(args.first, args.first + args.cases):
-            if args.half != "all" and half(case) != args.half:
+            if (args.half != "all" and half(case) != args.half) or (
+                    args.ct != "any" and maker.ct_name(case) != args.ct):
                 continue
             jobs = jobs_for_case(maker, case, variants, modes, done, args.work)
             for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
