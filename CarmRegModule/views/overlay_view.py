@@ -18,7 +18,8 @@ from qtpy import QtCore, QtGui
 from carmreg.logic.report import composite as overlay_images
 from carmreg.logic.report.style import CHECK_COLOUR, CLICK_COLOUR, FITTED_COLOUR, level_marker, status_ink
 
-from .image_canvas import ImageCanvas, MarkerSpec
+from .image_canvas import ImageCanvas
+from .markers import MarkerSpec
 
 LEGEND_HEIGHT_PX = 62.0
 

@@ -15,7 +15,8 @@ from qtpy import QtCore, QtWidgets
 from carmreg.logic.io.landmarks import LEVEL_NAMES
 from carmreg.logic.report.style import status_ink
 
-from .image_canvas import ImageCanvas, MarkerSpec
+from .image_canvas import ImageCanvas
+from .markers import MarkerSpec
 
 ARROW = "\u2192"
 
