@@ -13,7 +13,8 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      nothing, however large its lead;
    - landmark fit: ``mPDE(winner) <= landmark_ratio * mPDE(rival) + landmark_slack_mm`` - a labelling the clicks
      fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
-     clicks fitted 3.19 mm against 1.66 mm, one level off);
+     clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
+     clicks must fit the winner itself (seen: labellings five levels off won at 6 mm);
    - stability: the leading two labellings were refitted, each from the other's pose, and the same one led;
    - appearance: the X-ray's polarity was clear (or set by the user and not contradicted) and it matches the CT
      best as stored, not mirrored or turned (``image.appearance``).
@@ -36,9 +37,13 @@ from carmreg.logic.registration.labelling_fit import LabellingFit
 @dataclass
 class ConfidenceRule:
     margin: float = 0.02              # objective difference between confident and ambiguous
-    min_similarity: float = 0.20      # GC at the winning labelling's pose, below which nothing is confirmed
+    min_similarity: float = 0.40      # GC at the winning labelling's pose, below which nothing is confirmed
+    # (chosen on the appearance benchmark's tune half: the highest floor that costs no confident right answer
+    # there - right answers reached GC >= 0.41, labellings that won wrongly up to 0.47, stopped by other checks)
     landmark_ratio: float = 1.5       # the winner's click mPDE may exceed the rival's by this factor ...
     landmark_slack_mm: float = 0.5    # ... plus this (detector mm; clicks carry ~1-3 mm of noise and motion)
+    max_landmark_mpde_mm: float = 4.0  # and never more than this in absolute terms (tune half: right winners
+    # <= 2.9 mm; wrong ones 1.9-8.8 mm; a mirrored display confidently named at 7.4 mm)
 
 
 @dataclass
@@ -75,9 +80,11 @@ class Evidence:
     def from_checks(cls, checks: dict) -> Evidence:
         """The evidence as ``check_results`` recorded it (for re-judging recorded runs under another rule)."""
         fit = checks.get("landmark_fit") or {}
-        return cls(float(checks["image_agreement"]["gc"]), float(fit.get("winner_mpde_mm", float("nan"))),
-                   float(fit.get("rival_mpde_mm", float("nan"))), bool(checks["stability"]["ok"]),
-                   bool(checks["appearance"]["ok"]))
+
+        def number(value) -> float:  # JSON keeps nan and inf as null
+            return float("nan") if value is None else float(value)
+        return cls(float(checks["image_agreement"]["gc"]), number(fit.get("winner_mpde_mm")),
+                   number(fit.get("rival_mpde_mm")), bool(checks["stability"]["ok"]), bool(checks["appearance"]["ok"]))
 
 
 def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> tuple[dict, list[str]]:
@@ -87,15 +94,20 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
     if not checks["image_agreement"]["ok"]:
         reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
                        f"{rule.min_similarity:.2f})")
-    if landmarks and np.isfinite(e.rival_mpde_mm):
-        limit = rule.landmark_ratio * e.rival_mpde_mm + rule.landmark_slack_mm
+    if landmarks and np.isfinite(e.winner_mpde_mm):
+        relative = (rule.landmark_ratio * e.rival_mpde_mm + rule.landmark_slack_mm if np.isfinite(e.rival_mpde_mm)
+                    else np.inf)
+        limit = min(relative, rule.max_landmark_mpde_mm)
         ok = bool(e.winner_mpde_mm <= limit)
         checks["landmark_fit"] = {"winner_mpde_mm": e.winner_mpde_mm, "rival_mpde_mm": e.rival_mpde_mm,
                                   "limit_mm": limit, "ok": ok}
-        if not ok:
-            reasons.append(f"the clicks fit {', '.join(e.winner_labels) or 'the winner'} clearly worse "
-                           f"({e.winner_mpde_mm:.1f} mm) than {', '.join(e.rival_labels) or 'its rival'} "
-                           f"({e.rival_mpde_mm:.1f} mm)")
+        winner = ", ".join(e.winner_labels) or "the winner"
+        if not ok and e.winner_mpde_mm > rule.max_landmark_mpde_mm:
+            reasons.append(f"the clicks fit {winner} poorly ({e.winner_mpde_mm:.1f} mm > "
+                           f"{rule.max_landmark_mpde_mm:.1f} mm)")
+        elif not ok:
+            reasons.append(f"the clicks fit {winner} clearly worse ({e.winner_mpde_mm:.1f} mm) than "
+                           f"{', '.join(e.rival_labels) or 'its rival'} ({e.rival_mpde_mm:.1f} mm)")
     checks["stability"] = {"ok": bool(e.stable)}
     if not e.stable:
         reasons.append("the leading labelling changed when the two best were refitted from each other's pose")

@@ -28,7 +28,7 @@ from carmreg.logic.image.appearance import trusted_appearance
 from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence, judge
 
 GRID = {"margin": (0.01, 0.015, 0.02, 0.03, 0.04, 0.05),
-        "min_similarity": (0.10, 0.15, 0.20, 0.25, 0.30, 0.35),
+        "min_similarity": (0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50),
         "landmark_ratio": (1.25, 1.5, 2.0),
         "landmark_slack_mm": (0.25, 0.5, 1.0)}
 

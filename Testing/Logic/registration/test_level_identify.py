@@ -95,7 +95,7 @@ def test_decision_margin_confident_ambiguous_contradicted():
 
 
 def test_poor_image_agreement_alone_makes_a_clear_lead_ambiguous():
-    """The same lead (0.10 > 0.02) is confident at GC 0.5 and ambiguous at GC 0.15 (< 0.20)."""
+    """The same lead (0.10 > 0.02) is confident at GC 0.5 and ambiguous at GC 0.15 (< 0.40)."""
     assert decide([_h(["T10"], 0.50, gc=0.50), _h(["T11"], 0.60)], None, RULE).status == "confident"
     v = decide([_h(["T10"], 0.50, gc=0.15), _h(["T11"], 0.60)], None, RULE)
     assert v.status == "ambiguous" and "agrees poorly" in v.reasons[0]
@@ -107,11 +107,13 @@ def test_poor_image_agreement_alone_makes_a_clear_lead_ambiguous():
 
 
 def test_a_winner_the_clicks_fit_clearly_worse_is_never_confident():
-    """The issue's case: GC 0.364 against 0.316 (margin 0.048) while the clicks fit 3.19 mm against 1.66 mm."""
-    wrong, right = _h(["T9"], 0.636 + 0.01, gc=0.364, mpde_mm=3.19), _h(["T10"], 0.684 + 0.01, gc=0.316,
+    """The issue's case (margin 0.048 while the clicks fit 3.19 mm against 1.66 mm), with image agreements above
+    the GC floor so that the landmark fit alone decides (the issue's GC 0.364 is below today's floor anyway)."""
+    wrong, right = _h(["T9"], 0.636 + 0.01, gc=0.464, mpde_mm=3.19), _h(["T10"], 0.684 + 0.01, gc=0.416,
                                                                      mpde_mm=1.66)
     v = decide([wrong, right], None, RULE)
-    assert v.margin >= RULE.margin and v.status == "ambiguous" and "clearly worse" in v.reasons[0]
+    assert v.margin >= RULE.margin and v.status == "ambiguous" and v.reasons == [v.reasons[0]]
+    assert "clearly worse" in v.reasons[0]
     assert v.checks["landmark_fit"]["limit_mm"] == pytest.approx(1.5 * 1.66 + 0.5)
     # the same lead with a landmark fit within the limit (2.9 mm <= 2.99 mm) stays confident
     wrong.refine.mpde_mm = 2.9
@@ -119,6 +121,16 @@ def test_a_winner_the_clicks_fit_clearly_worse_is_never_confident():
     # and the surgeon's right names are not contradicted by a labelling the clicks fit clearly worse
     wrong.refine.mpde_mm = 3.19
     assert decide([wrong, right], right, RULE).status == "ambiguous"
+
+
+def test_a_winner_the_clicks_fit_poorly_in_absolute_terms_is_never_confident():
+    """5.0 mm against a rival's 4.0 mm passes the relative limit (6.5 mm) but not the 4 mm cap."""
+    a, b = _h(["T5"], 0.50, mpde_mm=5.0), _h(["T6"], 0.60, mpde_mm=4.0)
+    v = decide([a, b], None, RULE)
+    assert v.status == "ambiguous" and "poorly (5.0 mm > 4.0 mm)" in v.reasons[0]
+    assert v.checks["landmark_fit"]["limit_mm"] == pytest.approx(4.0)
+    a.refine.mpde_mm = 3.9
+    assert decide([a, b], None, RULE).status == "confident"
 
 
 def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous():
@@ -133,7 +145,7 @@ def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous()
 def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_them():
     """The benchmark's calibration re-judges recorded runs (``Evidence.from_checks`` + ``judge``): it must give the
     status ``decide`` gave, for every part of the rule, and follow a changed threshold."""
-    wrong, right = _h(["T9"], 0.646, gc=0.364, mpde_mm=3.19), _h(["T10"], 0.694, gc=0.316, mpde_mm=1.66)
+    wrong, right = _h(["T9"], 0.646, gc=0.464, mpde_mm=3.19), _h(["T10"], 0.694, gc=0.416, mpde_mm=1.66)
     cases = [([_h(["T10"], 0.50), _h(["T11"], 0.60)], None, {}), ([_h(["T10"], 0.50), _h(["T11"], 0.515)], None, {}),
              ([_h(["T10"], 0.50, gc=0.15), _h(["T11"], 0.60)], None, {}), ([wrong, right], None, {}),
              ([wrong, right], right, {}), ([_h(["T10"], 0.50), _h(["T11"], 0.60)], None, {"stable": False})]
@@ -141,9 +153,9 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
         v = decide(fits, given, RULE, **flags)
         recorded = json.loads(json.dumps(v.checks))  # as result.json stores them
         assert judge(v.margin, Evidence.from_checks(recorded), RULE)[0] == v.status
-    v = decide([_h(["T10"], 0.50, gc=0.25), _h(["T11"], 0.60)], None, RULE)
+    v = decide([_h(["T10"], 0.50, gc=0.45), _h(["T11"], 0.60)], None, RULE)
     assert v.status == "confident"
-    stricter = ConfidenceRule(min_similarity=0.30)
+    stricter = ConfidenceRule(min_similarity=0.50)
     assert judge(v.margin, Evidence.from_checks(v.checks), stricter)[0] == "ambiguous"
     assert judge(0.015, Evidence.from_checks(v.checks), ConfidenceRule(margin=0.01))[0] == "confident"
 
