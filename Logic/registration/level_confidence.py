@@ -16,8 +16,9 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
      clicks must fit the winner itself (seen: labellings five levels off won at 6 mm);
    - stability: the leading two labellings were refitted, each from the other's pose, and the same one led;
-   - appearance: the X-ray's polarity was clear (or set by the user and not contradicted) and it matches the CT
-     best as stored, not mirrored or turned (``image.appearance``).
+   - appearance: the X-ray's polarity was clear (or set by the user and not contradicted; a file stating its
+     polarity and an image disagreeing is a conflict) and it matches the CT best as stored by a clear lead, not
+     mirrored or turned (``image.appearance.trusted_appearance``).
 
    Any failed check turns the verdict into **ambiguous**, with the reasons in words.
 
