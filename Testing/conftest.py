@@ -89,3 +89,19 @@ def oblique_volume():
     rng = np.random.default_rng(7)
     hu = rng.integers(-1000, 3000, size=(24, 20, 9)).astype(np.int16)
     return Volume(hu, oblique_affine(), "synthetic-oblique")
+
+
+@pytest.fixture(scope="session")
+def tiny_db_inputs():
+    """A 16^3 CT of air with a bone bar (4 mm voxels) and a 12 x 12 px detector: the inputs of a DRR database
+    small enough to build in milliseconds (mu level, geometry, intrinsics, ty grid, tz grid)."""
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
+    from carmreg.logic.geometry.volume import MuPyramid, Volume
+    from carmreg.logic.registration.database import grid
+
+    hu = np.full((16, 16, 16), -1000, np.int16)
+    hu[6:10, 6:10, 4:12] = 1000
+    volume = Volume(hu, np.diag([4.0, 4.0, 4.0, 1.0]), "tiny")
+    intrinsics = CarmIntrinsics(1000.0, (4.0, 4.0), (12, 12))
+    geometry = CarmGeometry(intrinsics, tuple(volume.center_lps_mm()), 600.0)
+    return MuPyramid(volume).level(None), geometry, intrinsics, grid(4.0, 2.0), grid(2.0, 2.0)

@@ -25,8 +25,8 @@ import pydicom
 import pytest
 
 from carmreg.logic.errors import CarmRegError, GeometryError, InputFileError, RegistrationError, quote
-from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
-from carmreg.logic.geometry.volume import MuPyramid, Volume
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io import array_cache
 from carmreg.logic.io.array_cache import sweep_cache
 from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d
@@ -34,7 +34,7 @@ from carmreg.logic.io.session import load_session
 from carmreg.logic.io.transaction import MANIFEST, FolderTransaction, check_writable_folder, read_manifest
 from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
 from carmreg.logic.io.xray import load_xray, write_xray_dicom
-from carmreg.logic.registration.database import build_database, check_database_size, grid
+from carmreg.logic.registration.database import build_database, check_database_size
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 
 MiB = 1024**2
@@ -201,17 +201,8 @@ def test_database_budget_is_checked_before_allocating():
 
 # ---------------------------------------------------------------------------------------------- DRR cache
 
-def _tiny_db_inputs():
-    hu = np.full((16, 16, 16), -1000, np.int16)
-    hu[6:10, 6:10, 4:12] = 1000
-    volume = Volume(hu, np.diag([4.0, 4.0, 4.0, 1.0]), "tiny")
-    intrinsics = CarmIntrinsics(1000.0, (4.0, 4.0), (12, 12))
-    geometry = CarmGeometry(intrinsics, tuple(volume.center_lps_mm()), 600.0)
-    return MuPyramid(volume).level(None), geometry, intrinsics, grid(4.0, 2.0), grid(2.0, 2.0)
-
-
-def test_cache_damaged_with_finite_values_or_replaced_by_a_pipe_is_rebuilt(tmp_path):
-    inputs = _tiny_db_inputs()
+def test_cache_damaged_with_finite_values_or_replaced_by_a_pipe_is_rebuilt(tmp_path, tiny_db_inputs):
+    inputs = tiny_db_inputs
     first = build_database(*inputs, 0.0, tmp_path)
     data = tmp_path / f"db-{first.key}.npy"
     reference = np.array(first.drrs)

@@ -41,7 +41,7 @@ from carmreg.logic.io.landmarks import (
 from carmreg.logic.io.transforms import read_tfm
 from carmreg.logic.io.volumes import load_volume, write_dicom_series, write_volume_nrrd
 from carmreg.logic.io.xray import load_xray, write_png16, write_xray_dicom
-from carmreg.logic.registration.database import build_database, grid
+from carmreg.logic.registration.database import build_database
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 
 LEVELS = ["T11", "T12", "L1", "L2"]
@@ -427,14 +427,6 @@ def test_versor_longer_than_one_is_normalised_like_itk(tmp_path):
 # Written against whatever files ``build_database`` puts in the cache folder for a key (``db-<key>.*``: the
 # largest is the DRR data, any other a sidecar), so the tests hold whatever the cache format.
 
-@pytest.fixture(scope="module")
-def tiny_db_inputs():
-    hu = np.full((16, 16, 16), -1000, np.int16)
-    hu[6:10, 6:10, 4:12] = 1000
-    volume = Volume(hu, np.diag([4.0, 4.0, 4.0, 1.0]), "tiny")
-    intrinsics = CarmIntrinsics(1000.0, (4.0, 4.0), (12, 12))
-    geometry = CarmGeometry(intrinsics, tuple(volume.center_lps_mm()), 600.0)
-    return MuPyramid(volume).level(None), geometry, intrinsics, grid(4.0, 2.0), grid(2.0, 2.0)
 
 
 def _cache_files(folder: Path, key: str) -> list[Path]:
