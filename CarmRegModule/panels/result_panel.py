@@ -22,12 +22,8 @@ from qtpy import QtCore, QtGui, QtWidgets
 from carmreg.logic.geometry.camera import POSE_NAMES
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.composite import MODES
-from carmreg.logic.report.style import status_ink
+from carmreg.logic.report.style import MODE_DESCRIPTION, status_ink
 
-MODE_TEXT = {"named": "named clicks: their names were checked against the image",
-             "partly_named": "partly named clicks: the unnamed ones were named from the image",
-             "unnamed": "unnamed clicks: their levels were identified from the image",
-             "image_only": "no clicks: the levels were identified from the image alone"}
 MAX_HYPOTHESES = 6
 
 
@@ -224,7 +220,7 @@ class ResultPanel(QtWidgets.QWidget):
         colour = status_ink(status)
         self.level_status_color = colour if status else None
         mode = check.mode or None
-        self.level_mode_label.setText(MODE_TEXT.get(mode, mode or "-"))
+        self.level_mode_label.setText(MODE_DESCRIPTION.get(mode, mode or "-"))
         self.level_status_label.setText(status.upper() if status else "-")
         self.level_status_label.setStyleSheet(f"color: {colour}; font-weight: bold;")
         message = check.message

@@ -169,20 +169,21 @@ class MuPyramid:
                 mu = np.ascontiguousarray(hu_to_mu(self.volume.hu, self.mu_water_per_mm))
                 self._levels[None] = MuLevel(mu, self.volume.ijk_to_lps.copy(), None)
             else:
-                self._levels[key] = self._cached(key) or self._resampled(self.level(None), key)
+                name = self.digest(key)[:24] if self.cache else ""
+                self._levels[key] = self._cached(name, key) or self._resampled(self.level(None), key, name)
         return self._levels[key]
 
-    def _cached(self, spacing_mm: float) -> MuLevel | None:
-        hit = self.cache.load("mu", self.digest(spacing_mm)[:24], LEVEL_CACHE_FORMAT) if self.cache else None
+    def _cached(self, name: str, spacing_mm: float) -> MuLevel | None:
+        hit = self.cache.load("mu", name, LEVEL_CACHE_FORMAT) if self.cache else None
         if hit is None:
             return None
         mu, meta = hit
         return MuLevel(np.array(mu, dtype=np.float32, order="C"), np.asarray(meta["ijk_to_lps"], float), spacing_mm)
 
-    def _resampled(self, full: MuLevel, spacing_mm: float) -> MuLevel:
+    def _resampled(self, full: MuLevel, spacing_mm: float, name: str) -> MuLevel:
         mu, affine = resample_isotropic(full.mu_per_mm, full.ijk_to_lps, spacing_mm)
         level = MuLevel(np.ascontiguousarray(mu), affine, spacing_mm)
         if self.cache:
-            self.cache.save("mu", self.digest(spacing_mm)[:24], level.mu_per_mm, LEVEL_CACHE_FORMAT,
+            self.cache.save("mu", name, level.mu_per_mm, LEVEL_CACHE_FORMAT,
                             "attenuation level", {"ijk_to_lps": affine.tolist()})
         return level

@@ -45,10 +45,6 @@ class Readiness:
     common_levels: list[str] = field(default_factory=list)
     kinds: list[type] = field(default_factory=list)   # the CarmRegError class of each problem
 
-    @property
-    def ready(self) -> bool:
-        return not self.problems
-
     def add(self, kind: type, problem: str) -> None:
         self.kinds.append(kind)
         self.problems.append(problem)

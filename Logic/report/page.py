@@ -34,7 +34,7 @@ import numpy as np
 from carmreg.logic.io.atomic import atomic_write
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
-from carmreg.logic.report.style import level_answer
+from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer
 
 A4_INCHES = (8.27, 11.69)
 NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
@@ -113,10 +113,7 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
                f"{appearance.orientation.replace('-', ' ')}. ") if appearance is not None else ""
     if not check:
         return _wrap(seen_as + "The level names were not checked against the image (level check off).", 110)
-    mode = {"named": "named clicks, checked against the names shifted up and down",
-            "partly_named": "partly named clicks, the others named from the image",
-            "unnamed": "unnamed clicks, named from the image",
-            "image_only": "no clicks: levels from the image alone"}.get(check.mode, str(check.mode))
+    mode = MODE_DESCRIPTION.get(check.mode, str(check.mode))
     tried = sorted((h for h in check.hypotheses if h.get("refined", True) and h.get("labels")),
                    key=lambda h: float(h.get("score", np.inf)))
     seen, parts = set(), []

@@ -119,6 +119,12 @@ def answer_banner(level_check: LevelCheck | None, ok: bool, warnings: list[str])
 
 MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",
              "image_only": "image alone (no clicks)"}
+"""The mode in a few words, for the one-line banner (``level_banner``)."""
+MODE_DESCRIPTION = {"named": "named clicks, checked against the names shifted up and down",
+                    "partly_named": "partly named clicks, the others named from the image",
+                    "unnamed": "unnamed clicks, named from the image",
+                    "image_only": "no clicks: levels from the image alone"}
+"""What the mode did, for the report page and the window's level box."""
 
 
 def level_banner(check: LevelCheck | None) -> tuple[str, tuple[int, int, int]] | None:
