@@ -64,6 +64,13 @@ from carmreg.logic.similarity.metrics import similarity
 POLARITIES = ("bone-dark", "bone-bright")
 CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores above which the sign decides without refinement
 CLEAR_REFINED_GC = 0.05     # GC gap of the refined scores above which the tie-break is called clear
+CLEAR_CLICKS_GC = 0.10      # at the clicks' poses: the GC gap called clear (tune half of the appearance benchmark)
+MIN_CLICKS_GC = 0.30        # ... and the winner's GC must reach this, or the database agree clearly (ditto)
+REFINED_AT_DATABASE_POSES = "refined"            # each polarity's best database pose refined on the image
+REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
+REFINED_CLEAR = {REFINED_AT_DATABASE_POSES: (CLEAR_REFINED_GC, -1.0),
+                 REFINED_AT_CLICKS: (CLEAR_CLICKS_GC, MIN_CLICKS_GC)}
+"""Where refined polarity scores were measured -> (clear gap, lowest winning GC)."""
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
                 "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
@@ -83,7 +90,7 @@ class Appearance:
 
     polarity: str                     # "bone-dark" | "bone-bright": the one used
     storage: str                      # "linear-intensity" (-log) | "log-display" (linear)
-    decided_by: str                   # "image" | "image (refined)" | "user" | "header"
+    decided_by: str                   # "image" | "image (<refined_by>)" | "user" | "header ..."
     clear: bool                       # the evidence clearly supports ``polarity`` (or the user's choice)
     clarity_gc: float                 # GC gap between the polarities (database or refined scores)
     threshold_gc: float               # the gap called clear
@@ -188,15 +195,21 @@ def image_polarity(scores: dict) -> tuple[str, float]:
 
 
 def decide_polarity(database: dict, refined: dict | None, requested: str, header_bone_dark: bool,
-                    header_source: str, storage: dict | None = None, header_explicit: bool = False) -> Appearance:
+                    header_source: str, storage: dict | None = None, header_explicit: bool = False,
+                    refined_by: str = REFINED_AT_DATABASE_POSES) -> Appearance:
     """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
     the ``storage_gc`` when known (else see ``Appearance.set_storage``); ``header_explicit``: the file states its
-    polarity (rather than a default for its type)."""
-    evidence, threshold, by = (refined, CLEAR_REFINED_GC, "image (refined)") if refined is not None \
-        else (database, CLEAR_POLARITY_GC, "image")
+    polarity (rather than a default for its type); ``refined_by``: where the ``refined`` scores were measured
+    (``REFINED_AT_DATABASE_POSES`` or ``REFINED_AT_CLICKS``, each with its own clear gap)."""
+    (threshold, floor), by = REFINED_CLEAR[refined_by], f"image ({refined_by})"
+    evidence = refined
+    if refined is None:
+        evidence, threshold, floor, by = database, CLEAR_POLARITY_GC, -1.0, "image"
     seen, gap = image_polarity(evidence)
     header = "bone-dark" if header_bone_dark else "bone-bright"
-    clear = gap >= threshold
+    database_seen, database_gap = image_polarity(database)
+    database_agrees = database_seen == seen and database_gap >= CLEAR_POLARITY_GC
+    clear = gap >= threshold and (evidence[seen] >= floor or database_agrees)
     if requested in POLARITIES:
         polarity, by = requested, "user"
         contradicted = clear and seen != requested
@@ -212,10 +225,11 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         note = f"{header}, as the file states ({header_source}) and the image agrees (GC gap {gap:.3f})"
     elif clear:
         polarity = seen
-        note = f"{seen}, found from the image (GC gap {gap:.3f} >= {threshold})"
+        note = f"{seen}, found from the {by} (GC gap {gap:.3f} >= {threshold})"
     else:
         polarity = seen
-        note = (f"{seen}, but the image barely tells (GC gap {gap:.3f} < {threshold}); the file says {header}: "
+        why = f"GC gap {gap:.3f} < {threshold}" if gap < threshold else f"best GC {evidence[seen]:.3f} < {floor}"
+        note = (f"{seen}, but the image barely tells ({why}); the file says {header}: "
                 "set the polarity by hand if the overlay looks inverted")
     scores = {"database": {k: database[k] for k in POLARITIES},
               "refined": None if refined is None else {k: refined[k] for k in POLARITIES}, "storage": None}

@@ -143,11 +143,23 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     return min((f for f in fits if f.refined), key=lambda f: f.score) is a
 
 
-def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
-                    appearance_clear: bool = True) -> LevelIdentification:
-    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
-    Named clicks without a CT centroid are left out (as in pairing by name); ``click_indices`` says which
-    clicks were identified."""
+@dataclass
+class ContestPlan:
+    """The labellings of the clicks before any image registration (``plan_contest``)."""
+
+    mode: str                               # named | partly_named | unnamed
+    fits: list                              # LabellingFit per candidate labelling, depth search only
+    first: list                             # indices into ``fits`` registered first, the most plausible first
+    given_index: int | None                 # the surgeon's names (named modes)
+    used: list                              # the given clicks that can be identified (``click_indices``)
+    order: np.ndarray                       # spine order of the used clicks
+
+
+def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None
+                 ) -> ContestPlan:
+    """The candidate labellings (``candidate_labellings``), each with its depth search, and which to register
+    first: unnamed clicks the ``candidates`` whose source depth is nearest the nominal; named clicks the names
+    first, then one level up and down. Named clicks without a CT centroid are left out (as in pairing by name)."""
     p = params or IdentifyParameters()
     ct_names = ct_level_names(ct)
     used = identifiable_clicks(clicks, ct_names)
@@ -161,18 +173,33 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if given_index is None:  # the most plausible magnifications first (source depth nearest the nominal)
         first = np.argsort([abs(f.pose[0]) for f in fits], kind="stable")[:p.candidates].tolist()
     else:
-        first = [i for i in (given_index - 1, given_index, given_index + 1) if 0 <= i < len(fits)]
-    _contest(ctx, fits, first)
+        first = [i for i in (given_index, given_index - 1, given_index + 1) if 0 <= i < len(fits)]
+    return ContestPlan(mode, fits, first, given_index, used, order)
+
+
+def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
+                    appearance_clear: bool = True, registered: list | tuple = ()) -> LevelIdentification:
+    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
+    ``registered``: labellings already registered on this very X-ray image (the polarity check at the clicks'
+    poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks."""
+    p = params or IdentifyParameters()
+    plan = plan_contest(ctx, ct, clicks, p)
+    fits = plan.fits
+    for done in registered:
+        for i, f in enumerate(fits):
+            if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
+                fits[i] = done
+    _contest(ctx, fits, plan.first)
     stable = True
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [])  # a new leader is compared with its neighbours too
-    given = fits[given_index] if given_index is not None else None
+    given = fits[plan.given_index] if plan.given_index is not None else None
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
-    return LevelIdentification(mode, verdict.status, verdict.margin, order.tolist(), verdict.winner,
-                               verdict.runner_up, given, fits, _message(mode, verdict, chosen),
-                               click_indices=used, reasons=verdict.reasons, checks=verdict.checks)
+    return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
+                               verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
+                               click_indices=plan.used, reasons=verdict.reasons, checks=verdict.checks)
 
 
 # ----------------------------------------------------------------------------------------------- no clicks

@@ -40,6 +40,8 @@ from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
     CLEAR_POLARITY_GC,
     POLARITIES,
+    REFINED_AT_CLICKS,
+    REFINED_AT_DATABASE_POSES,
     decide_polarity,
     image_polarity,
     orientation_scores,
@@ -52,6 +54,7 @@ from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
 from carmreg.logic.io.xray_image import EXPLICIT_POLARITY_SOURCE
+from carmreg.logic.registration.click_polarity import ClickPolarity, polarity_at_clicks
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
@@ -62,6 +65,7 @@ from carmreg.logic.registration.levels import (
     IdentifyParameters,
     identify_from_image,
     identify_levels,
+    plan_contest,
 )
 from carmreg.logic.registration.outcome import build_result
 from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight
@@ -181,24 +185,28 @@ class CarmRegLogic:
                 "detector_px": list(intr.size_px), "key": state.database.key}
 
     def _decide_appearance(self, state: RegistrationState) -> dict:
-        """Polarity and storage from the image against the database (``image.appearance``); the X-ray's
-        attenuation image is rebuilt with them."""
+        """Polarity and storage from the image against the database (``image.appearance``) and, with clicks,
+        at the clicks' poses (``click_polarity``); the X-ray's attenuation image is rebuilt with them."""
         p, xray = state.parameters, state.xray
         rows, cols = state.database.drrs.shape[2:]
         drrs = state.database.drrs.reshape(-1, rows, cols)
         scores = polarity_scores(xray.pixels, state.mask, drrs, state.coarse_factor)
-        refined = None
-        if p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
+        gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
+        refined, refined_by = None, REFINED_AT_DATABASE_POSES
+        state.click_polarity = self._polarity_at_clicks(state, gc_by_storage)
+        if state.click_polarity is not None:
+            refined, refined_by = state.click_polarity.scores, REFINED_AT_CLICKS
+        elif p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
             refined = self._refined_polarity_scores(state, scores)
         source = xray.sources.get("bone_dark", "")
         state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark, source,
-                                               header_explicit=source.startswith(EXPLICIT_POLARITY_SOURCE))
-        state.known_gc = None
-        if a.bone_dark:  # a bone-bright image is attenuation-like already: no storage to choose
-            gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
-            a.set_storage(gc_by_storage)
-            state.known_gc = gc_by_storage[a.storage]  # the spatial stage's GC map, computed here already
+                                               header_explicit=source.startswith(EXPLICIT_POLARITY_SOURCE),
+                                               refined_by=refined_by)
+        if state.click_polarity is not None:
+            a.scores["at_clicks"] = state.click_polarity.as_dict()
+        a.set_storage(gc_by_storage)
+        state.known_gc = gc_by_storage[a.storage] if a.bone_dark else None  # the spatial stage's GC map
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
@@ -208,6 +216,31 @@ class CarmRegLogic:
             state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned almost as well as "
                                   "as stored; check that the display is not mirrored or rotated")
         return a.as_dict()
+
+    def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
+        """The leading labellings registered under both polarities (``click_polarity``); None without enough
+        identifiable clicks. A bone-dark image is converted with its better-agreeing storage."""
+        p, clicks = state.parameters, state.xray_landmarks
+        if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
+            return None
+        dark_storage = max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))
+        contexts = {}
+        for polarity in POLARITIES:
+            dark = polarity == "bone-dark"
+            line = attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
+            contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
+        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
+        return polarity_at_clicks(contexts, plan, dark_storage, lambda done, total: self._report(
+            "spatial", 0.1 + 0.8 * done / total, f"telling bone-dark from bone-bright at the clicks ({done + 1} "
+            f"of {total})"))
+
+    def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,
+                     on_labelling=None) -> FitContext:
+        """What every labelling's registration on ``line_integral`` shares (``labelling_fit``)."""
+        p = state.parameters
+        return FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, line_integral,
+                          state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
+                          p.depth_far_mm, p.depth_step_mm, self._check_cancel, on_labelling)
 
     def _refined_polarity_scores(self, state: RegistrationState, scores: dict) -> dict:
         """The tie-break of an unclear polarity: each polarity's best database pose refined on the image alone
@@ -276,19 +309,17 @@ class CarmRegLogic:
         state.pairs = state.given_pairs
         if clicks.named and len(clicks.labels) and not p.level_check:
             return {"enabled": False}
-        ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry,
-                         state.xray_line_integral, state.mask, state.spatial.ty_mm, state.spatial.tz_mm,
-                         p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm, p.depth_step_mm,
-                         self._check_cancel,
-                         self._labelling_progress(len(clicks.labels), clicks.named,
-                                                  len(ct_level_names(state.ct_landmarks)), p.identify))
+        ctx = self._fit_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm,
+                                self._labelling_progress(len(clicks.labels), clicks.named,
+                                                         len(ct_level_names(state.ct_landmarks)), p.identify))
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
                                         p.identify, appearance_clear)
         else:
-            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear)
+            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
+                                    registered=self._registered_at_clicks(state))
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -298,6 +329,15 @@ class CarmRegLogic:
             state.warnings.append(ident.message)
         # the answer itself is the result's level_check (result.json "level_check"), not repeated here
         return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits)}
+
+    @staticmethod
+    def _registered_at_clicks(state: RegistrationState) -> list:
+        """The polarity check's registrations under the polarity and storage in use (``click_polarity``)."""
+        cp, a = state.click_polarity, state.appearance
+        if cp is None or a is None or a.polarity not in cp.fits:
+            return []
+        same_image = a.polarity == "bone-bright" or a.storage == cp.dark_storage
+        return list(cp.fits[a.polarity]) if same_image else []
 
     def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
         """The levels stage's progress hook (``FitContext.on_labelling``): "labelling 3 of 7: T10, T11, T12"

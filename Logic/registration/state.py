@@ -19,6 +19,7 @@ from carmreg.logic.image.appearance import (
 from carmreg.logic.image.prepare import attenuation
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.database import DrrDatabase
 from carmreg.logic.registration.depth import DepthResult
 from carmreg.logic.registration.fine import FineParameters, FineResult
@@ -94,6 +95,7 @@ class RegistrationState:
     identification: LevelIdentification | None = None
     appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
     known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
+    click_polarity: ClickPolarity | None = None  # the polarity check's registrations at the clicks (spatial stage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
@@ -147,8 +149,9 @@ class RegistrationResult:
 def drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
-    fields = {"database": ("database",), "spatial": ("spatial",), "depth": ("depth",), "fine": ("fine",),
-              "refine": ("refine", "refined_pose"), "levels": ("identification",), "final_drr": ("drr_line_integral",)}
+    fields = {"database": ("database",), "spatial": ("spatial", "click_polarity"), "depth": ("depth",),
+              "fine": ("fine",), "refine": ("refine", "refined_pose"), "levels": ("identification",),
+              "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:
             setattr(state, attribute, None)

@@ -45,6 +45,22 @@ def test_field_is_found_whichever_way_bone_is_shown():
     assert 0.8 < a.sum() / disc.sum() < 1.0  # eroded by ~2 % of its size, no more
 
 
+def test_shutter_shadow_with_scatter_glow_is_left_out_of_the_field():
+    """A linear flat-panel image: a rectangular collimated field (rows 60-239, columns 50-209) with anatomy-like
+    texture, and outside only scatter glowing away from the edges (not flat, not extreme). The straight shutter
+    edges bound the field; without the glow the field is the same rectangle."""
+    rows, cols = np.mgrid[:300, :260]
+    inside = (rows >= 60) & (rows < 240) & (cols >= 50) & (cols < 210)
+    texture = 0.5 + 0.3 * ndimage.gaussian_filter(np.random.default_rng(2).random(rows.shape), 4) * 10
+    distance = ndimage.distance_transform_edt(~inside)
+    glow = 0.35 * np.exp(-distance / 25.0) + 0.02
+    found = field_mask(np.where(inside, texture, glow))
+    assert not (found & ~inside).any()  # no glow kept
+    assert found.sum() / inside.sum() > 0.85  # the 2 % erosion and the edge's blur, no more
+    plain = field_mask(np.where(inside, texture, 0.0))
+    assert (found & plain).sum() / (found | plain).sum() > 0.93
+
+
 def test_the_users_polarity_wins_but_a_clear_contradiction_is_not_trusted():
     scores = {"bone-dark": 0.50, "bone-bright": 0.20}
     auto = decide_polarity(scores, None, "auto", False, "header", None)
@@ -57,6 +73,29 @@ def test_the_users_polarity_wins_but_a_clear_contradiction_is_not_trusted():
     refined = decide_polarity({"bone-dark": 0.30, "bone-bright": 0.28}, {"bone-dark": 0.3, "bone-bright": 0.6},
                               "auto", True, "header", None)
     assert (refined.polarity, refined.decided_by, refined.clear) == ("bone-bright", "image (refined)", True)
+
+
+def test_the_polarity_at_the_clicks_poses_decides_and_each_part_of_its_clear_rule_counts():
+    """At the clicks' poses the scores are refined GCs of the leading labellings: clear when the gap reaches
+    CLEAR_CLICKS_GC and the winner MIN_CLICKS_GC, or, with a weaker winner, when the database agrees clearly. A
+    database that disagrees (a wrong-sign correlation at a grid pose, as on the second CT) is overruled."""
+    from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, MIN_CLICKS_GC, REFINED_AT_CLICKS
+
+    database_bright = {"bone-dark": 0.26, "bone-bright": 0.44}
+    database_dark = {"bone-dark": 0.49, "bone-bright": 0.26}
+
+    def at_clicks(database, dark, bright):
+        return decide_polarity(database, {"bone-dark": dark, "bone-bright": bright}, "auto", False, "PNG", None,
+                               refined_by=REFINED_AT_CLICKS)
+
+    strong = at_clicks(database_bright, 0.57, 0.16)
+    assert (strong.polarity, strong.clear, strong.decided_by) == ("bone-dark", True, "image (at the clicks' poses)")
+    narrow = at_clicks(database_dark, 0.30 + CLEAR_CLICKS_GC, 0.30 + 0.01)  # gap below CLEAR_CLICKS_GC
+    assert (narrow.polarity, narrow.clear) == ("bone-dark", False) and "GC gap" in narrow.note
+    weak = at_clicks(database_bright, MIN_CLICKS_GC - 0.01, -0.02)  # a wide gap, a weak winner
+    assert (weak.polarity, weak.clear) == ("bone-dark", False) and "best GC" in weak.note
+    backed = at_clicks(database_dark, MIN_CLICKS_GC - 0.01, -0.02)  # ... which the database backs clearly
+    assert (backed.polarity, backed.clear) == ("bone-dark", True)
 
 
 def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_conflict_never_trusted():
@@ -142,6 +181,33 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
     jpg = load_xray(jpeg, sdd_mm=geometry.intrinsics.sdd_mm, pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
     c = _appearance(sample_ct, jpg, tmp_path_factory)
     assert (c.polarity, c.clear) == ("bone-dark", True)
+
+
+@pytest.mark.slow
+def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
+        sample_ct, case, tmp_path, tmp_path_factory):
+    """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
+    under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
+    rather than computing them again."""
+    ct, _, centroids = sample_ct
+    sim, geometry = case
+    pixels = sim.pixels.astype(np.float64)
+    bright_png = tmp_path / "bright.png"
+    Image.fromarray(np.round(_inverted_in_field(pixels) / pixels.max() * 65535).astype(np.uint16)).save(bright_png)
+    bright = load_xray(bright_png, sdd_mm=geometry.intrinsics.sdd_mm,
+                       pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
+    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
+    for stage in ("database", "spatial", "levels"):
+        logic.run_stage(state, stage)
+    a, at_clicks = state.appearance, state.click_polarity
+    assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)
+    assert at_clicks.scores["bone-bright"] >= at_clicks.scores["bone-dark"] + 0.10
+    assert a.scores["at_clicks"]["labellings"] == at_clicks.labels and len(at_clicks.labels) == 2
+    reused = [f for f in state.identification.fits if any(f is g for g in at_clicks.fits["bone-bright"])]
+    assert len(reused) == 2
+    assert not any(f is g for f in state.identification.fits for g in at_clicks.fits["bone-dark"])
 
 
 @pytest.mark.slow
