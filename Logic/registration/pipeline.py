@@ -194,15 +194,16 @@ class CarmRegLogic:
         gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
         refined, refined_by = None, REFINED_AT_DATABASE_POSES
         state.click_polarity = self._polarity_at_clicks(state, gc_by_storage)
+        fits = None
         if state.click_polarity is not None:
-            refined, refined_by = state.click_polarity.scores, REFINED_AT_CLICKS
+            refined, refined_by, fits = state.click_polarity.scores, REFINED_AT_CLICKS, state.click_polarity.fits
         elif p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
             refined = self._refined_polarity_scores(state, scores)
         source = xray.sources.get("bone_dark", "")
         state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark, source,
                                                header_explicit=source.startswith(EXPLICIT_POLARITY_SOURCE),
-                                               refined_by=refined_by)
+                                               refined_by=refined_by, fits=fits)
         if state.click_polarity is not None:
             a.scores["at_clicks"] = state.click_polarity.as_dict()
         a.set_storage(gc_by_storage)
@@ -230,9 +231,12 @@ class CarmRegLogic:
             line = attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
             contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
-        return polarity_at_clicks(contexts, plan, dark_storage, lambda done, total: self._report(
-            "spatial", 0.1 + 0.8 * done / total, f"telling bone-dark from bone-bright at the clicks ({done + 1} "
-            f"of {total})"))
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
+                         f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
+
+        return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule.max_landmark_mpde_mm, progress)
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,
                      on_labelling=None) -> FitContext:
@@ -334,10 +338,10 @@ class CarmRegLogic:
     def _registered_at_clicks(state: RegistrationState) -> list:
         """The polarity check's registrations under the polarity and storage in use (``click_polarity``)."""
         cp, a = state.click_polarity, state.appearance
-        if cp is None or a is None or a.polarity not in cp.fits:
+        if cp is None or a is None or a.polarity not in cp.registered:
             return []
         same_image = a.polarity == "bone-bright" or a.storage == cp.dark_storage
-        return list(cp.fits[a.polarity]) if same_image else []
+        return list(cp.registered[a.polarity]) if same_image else []
 
     def _labelling_progress(self, n_clicks: int, named: bool, n_ct_levels: int, p: IdentifyParameters):
         """The levels stage's progress hook (``FitContext.on_labelling``): "labelling 3 of 7: T10, T11, T12"

@@ -77,25 +77,26 @@ def test_the_users_polarity_wins_but_a_clear_contradiction_is_not_trusted():
 
 def test_the_polarity_at_the_clicks_poses_decides_and_each_part_of_its_clear_rule_counts():
     """At the clicks' poses the scores are refined GCs of the leading labellings: clear when the gap reaches
-    CLEAR_CLICKS_GC and the winner MIN_CLICKS_GC, or, with a weaker winner, when the database agrees clearly. A
-    database that disagrees (a wrong-sign correlation at a grid pose, as on the second CT) is overruled."""
+    CLEAR_CLICKS_GC, the winner MIN_CLICKS_GC and the winner's registration keeps the clicks fitted. A database
+    that disagrees (a wrong-sign correlation at a grid pose, as on the second CT) is overruled."""
     from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, MIN_CLICKS_GC, REFINED_AT_CLICKS
 
     database_bright = {"bone-dark": 0.26, "bone-bright": 0.44}
-    database_dark = {"bone-dark": 0.49, "bone-bright": 0.26}
 
-    def at_clicks(database, dark, bright):
-        return decide_polarity(database, {"bone-dark": dark, "bone-bright": bright}, "auto", False, "PNG", None,
-                               refined_by=REFINED_AT_CLICKS)
+    def at_clicks(dark, bright, winner_fits=True):
+        fits = {"bone-dark": winner_fits, "bone-bright": winner_fits}
+        return decide_polarity(database_bright, {"bone-dark": dark, "bone-bright": bright}, "auto", False, "PNG",
+                               None, refined_by=REFINED_AT_CLICKS, fits=fits)
 
-    strong = at_clicks(database_bright, 0.57, 0.16)
+    strong = at_clicks(0.57, 0.16)
     assert (strong.polarity, strong.clear, strong.decided_by) == ("bone-dark", True, "image (at the clicks' poses)")
-    narrow = at_clicks(database_dark, 0.30 + CLEAR_CLICKS_GC, 0.30 + 0.01)  # gap below CLEAR_CLICKS_GC
+    narrow = at_clicks(0.30 + CLEAR_CLICKS_GC, 0.30 + 0.01)  # gap below CLEAR_CLICKS_GC
     assert (narrow.polarity, narrow.clear) == ("bone-dark", False) and "GC gap" in narrow.note
-    weak = at_clicks(database_bright, MIN_CLICKS_GC - 0.01, -0.02)  # a wide gap, a weak winner
+    weak = at_clicks(MIN_CLICKS_GC - 0.01, -0.02)  # a wide gap, a weak winner
     assert (weak.polarity, weak.clear) == ("bone-dark", False) and "best GC" in weak.note
-    backed = at_clicks(database_dark, MIN_CLICKS_GC - 0.01, -0.02)  # ... which the database backs clearly
-    assert (backed.polarity, backed.clear) == ("bone-dark", True)
+    off_the_clicks = at_clicks(0.57, 0.16, winner_fits=False)  # GC bought by leaving the clicks
+    assert (off_the_clicks.polarity, off_the_clicks.clear) == ("bone-dark", False)
+    assert "clicks fitted" in off_the_clicks.note
 
 
 def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_conflict_never_trusted():
@@ -204,10 +205,11 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     a, at_clicks = state.appearance, state.click_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)
     assert at_clicks.scores["bone-bright"] >= at_clicks.scores["bone-dark"] + 0.10
-    assert a.scores["at_clicks"]["labellings"] == at_clicks.labels and len(at_clicks.labels) == 2
-    reused = [f for f in state.identification.fits if any(f is g for g in at_clicks.fits["bone-bright"])]
-    assert len(reused) == 2
-    assert not any(f is g for f in state.identification.fits for g in at_clicks.fits["bone-dark"])
+    assert a.scores["at_clicks"]["labellings"] == at_clicks.labels
+    assert at_clicks.fits["bone-bright"]
+    reused = [f for f in state.identification.fits if any(f is g for g in at_clicks.registered["bone-bright"])]
+    assert len(reused) == len(at_clicks.labels) >= 2
+    assert not any(f is g for f in state.identification.fits for g in at_clicks.registered["bone-dark"])
 
 
 @pytest.mark.slow
