@@ -54,6 +54,12 @@ class XrayImage:
     meta: dict = field(default_factory=dict)
 
     @property
+    def polarity_stated(self) -> bool:
+        """The file states which way bone is shown (DICOM PixelIntensityRelationshipSign), rather than CarmReg
+        assuming a default for its type; ``image.appearance`` weighs a stated polarity as evidence."""
+        return self.sources.get("bone_dark", "").startswith(EXPLICIT_POLARITY_SOURCE)
+
+    @property
     def size_px(self) -> tuple[int, int]:
         """(columns, rows)."""
         return int(self.pixels.shape[1]), int(self.pixels.shape[0])

@@ -53,7 +53,6 @@ from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
-from carmreg.logic.io.xray_image import EXPLICIT_POLARITY_SOURCE
 from carmreg.logic.registration.click_polarity import ClickPolarity, polarity_at_clicks
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
@@ -200,9 +199,8 @@ class CarmRegLogic:
         elif p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
             refined = self._refined_polarity_scores(state, scores)
-        source = xray.sources.get("bone_dark", "")
-        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark, source,
-                                               header_explicit=source.startswith(EXPLICIT_POLARITY_SOURCE),
+        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
+                                               xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
                                                refined_by=refined_by, fits=fits)
         if state.click_polarity is not None:
             a.scores["at_clicks"] = state.click_polarity.as_dict()

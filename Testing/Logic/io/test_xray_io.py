@@ -134,6 +134,7 @@ def test_bone_dark_from_sign_or_modality_default(tmp_path, pixels, intrinsics, m
     image = load_xray(path)
     assert image.bone_dark is expected and image.meta["modality"] == modality
     assert ("default" in image.sources["bone_dark"]) == (sign is None)
+    assert image.polarity_stated == (sign is not None)  # a stated polarity is evidence (image.appearance)
     assert load_xray(path, bone_dark=not expected).bone_dark is (not expected)
 
 
