@@ -11,7 +11,13 @@ the most plausible first; named clicks: the names and one level up and down, so 
 its true neighbour judged too) are registered under both polarities p, exactly as the levels stage registers a
 labelling (``fit_labelling``: depth search, anchored landmark fit, wide image refinement with the landmark term)::
 
-    score(p) = max_L GC_refined(L, p);   fits(p) = the clicks' mPDE at that best registration <= max_fit_mm
+    score(p) = max_L GC_refined(L, p)
+    fits(p)  = mPDE(L*, p) <= landmark_limit_mm(mPDE(L*, other polarity))   (L* the labelling of score(p))
+
+that is, the clicks fit the winning registration within the confidence rule's cap and not clearly worse than the
+same labelling registered under the other polarity (``level_confidence.landmark_limit_mm``): a wrong polarity
+can buy GC by pulling the CT off the clicks (seen on a large patient where bone barely shows: 0.34 at 3.9 mm
+against 0.21 at 0.5 mm for the right one, same labelling).
 
 The image of the wrong polarity is the negative of the right one up to the storage map, so its refinement finds
 no pose where the clicks and the image both agree. ``appearance.clear_at_clicks`` says when the scores are clear;
@@ -31,6 +37,7 @@ from dataclasses import dataclass
 
 from carmreg.logic.image.appearance import clear_at_clicks
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling
+from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
 
 UNNAMED_LEADERS = 2   # unnamed clicks: the most plausible labellings judged first under both polarities
@@ -41,7 +48,7 @@ class ClickPolarity:
     """The polarity evidence at the clicks' poses."""
 
     scores: dict            # {polarity: max refined GC over the judged labellings}
-    fits: dict              # {polarity: the clicks fit that best registration within max_fit_mm}
+    fits: dict              # {polarity: the clicks fit that best registration (module docstring)}
     registered: dict        # {polarity: [LabellingFit, registered under that polarity]}
     labels: list            # the labellings judged, as level names
     dark_storage: str       # how the bone-dark image was converted ("linear-intensity" | "log-display")
@@ -53,11 +60,12 @@ class ClickPolarity:
                 "mpde_mm": {p: [f.mpde_mm for f in fits] for p, fits in self.registered.items()}}
 
 
-def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, max_fit_mm: float,
+def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rule: ConfidenceRule,
                        progress=None) -> ClickPolarity:
     """Register the leading labellings under each polarity until the scores are clear (module docstring).
     ``contexts``: {polarity: FitContext} whose images are the X-ray converted with that polarity (bone dark with
-    ``dark_storage``); ``progress(done, total)`` is called before each registration."""
+    ``dark_storage``); ``rule``: the level confidence rule, whose landmark limits say when the clicks fit;
+    ``progress(done, total)`` is called before each registration."""
     leaders = list(plan.first)
     count = len(leaders) if plan.given_index is not None else min(UNNAMED_LEADERS, len(leaders))
     registered = {polarity: [] for polarity in contexts}
@@ -67,17 +75,20 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, max
                 if progress is not None:
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
                 registered[polarity].append(fit_labelling(_quiet(ctx), _fresh(plan.fits[i])))
-        evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, max_fit_mm)
+        evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
         if count >= len(leaders) or clear_at_clicks(evidence.scores, evidence.fits):
             return evidence
         count += 1
 
 
-def _evidence(registered: dict, labels: list, dark_storage: str, max_fit_mm: float) -> ClickPolarity:
+def _evidence(registered: dict, labels: list, dark_storage: str, rule: ConfidenceRule) -> ClickPolarity:
+    """score(p) and fits(p) of the module docstring; ``registered``: {polarity: fits, in the same labelling order}."""
     scores, fits = {}, {}
     for polarity, done in registered.items():
-        best = max(done, key=lambda f: f.similarity)
-        scores[polarity], fits[polarity] = best.similarity, bool(best.mpde_mm <= max_fit_mm)
+        k = max(range(len(done)), key=lambda i: done[i].similarity)
+        rivals = [other[k].mpde_mm for p, other in registered.items() if p != polarity]
+        limit = landmark_limit_mm(min(rivals) if rivals else float("nan"), rule)
+        scores[polarity], fits[polarity] = done[k].similarity, bool(done[k].mpde_mm <= limit)
     return ClickPolarity(scores, fits, {p: list(f) for p, f in registered.items()}, labels, dark_storage)
 
 

@@ -88,6 +88,13 @@ class Evidence:
                    number(fit.get("rival_mpde_mm")), bool(checks["stability"]["ok"]), bool(checks["appearance"]["ok"]))
 
 
+def landmark_limit_mm(rival_mpde_mm: float, rule: ConfidenceRule) -> float:
+    """The click mPDE (detector mm) a winner may have against a rival's: ``landmark_ratio`` x the rival's +
+    ``landmark_slack_mm``, never above ``max_landmark_mpde_mm`` (no rival, nan: the cap alone)."""
+    relative = rule.landmark_ratio * rival_mpde_mm + rule.landmark_slack_mm if np.isfinite(rival_mpde_mm) else np.inf
+    return float(min(relative, rule.max_landmark_mpde_mm))
+
+
 def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> tuple[dict, list[str]]:
     """Each check's values and pass/fail, and the reasons in words of those that failed (module docstring)."""
     checks, reasons = {}, []
@@ -96,9 +103,7 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
         reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
                        f"{rule.min_similarity:.2f})")
     if landmarks and np.isfinite(e.winner_mpde_mm):
-        relative = (rule.landmark_ratio * e.rival_mpde_mm + rule.landmark_slack_mm if np.isfinite(e.rival_mpde_mm)
-                    else np.inf)
-        limit = min(relative, rule.max_landmark_mpde_mm)
+        limit = landmark_limit_mm(e.rival_mpde_mm, rule)
         ok = bool(e.winner_mpde_mm <= limit)
         checks["landmark_fit"] = {"winner_mpde_mm": e.winner_mpde_mm, "rival_mpde_mm": e.rival_mpde_mm,
                                   "limit_mm": limit, "ok": ok}

@@ -234,7 +234,7 @@ class CarmRegLogic:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
                          f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
 
-        return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule.max_landmark_mpde_mm, progress)
+        return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,
                      on_labelling=None) -> FitContext:
