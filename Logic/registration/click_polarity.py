@@ -20,7 +20,7 @@ can buy GC by pulling the CT off the clicks (seen on a large patient where bone 
 against 0.21 at 0.5 mm for the right one, same labelling).
 
 The image of the wrong polarity is the negative of the right one up to the storage map, so its refinement finds
-no pose where the clicks and the image both agree. ``appearance.clear_at_clicks`` says when the scores are clear;
+no pose where the clicks and the image both agree. ``appearance.verdict_at_clicks`` says when the scores are clear;
 unnamed clicks start with ``UNNAMED_LEADERS`` labellings and add the next most plausible one until the scores
 are clear or ``first`` is used up (the leading labellings can all be wrong ones: then the right polarity has no
 aligned spine to show either).
@@ -35,7 +35,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 
-from carmreg.logic.image.appearance import clear_at_clicks
+from carmreg.logic.image.appearance import verdict_at_clicks
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
@@ -76,7 +76,7 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
                 registered[polarity].append(fit_labelling(_quiet(ctx), _fresh(plan.fits[i])))
         evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
-        if count >= len(leaders) or clear_at_clicks(evidence.scores, evidence.fits):
+        if count >= len(leaders) or verdict_at_clicks(evidence.scores, evidence.fits)[2]:
             return evidence
         count += 1
 

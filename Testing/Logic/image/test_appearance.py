@@ -91,12 +91,15 @@ def test_the_polarity_at_the_clicks_poses_decides_and_each_part_of_its_clear_rul
     strong = at_clicks(0.57, 0.16)
     assert (strong.polarity, strong.clear, strong.decided_by) == ("bone-dark", True, "image (at the clicks' poses)")
     narrow = at_clicks(0.30 + CLEAR_CLICKS_GC, 0.30 + 0.01)  # gap below CLEAR_CLICKS_GC
-    assert (narrow.polarity, narrow.clear) == ("bone-dark", False) and "GC gap" in narrow.note
+    assert (narrow.polarity, narrow.clear) == ("bone-dark", False) and "GC lead" in narrow.note
     weak = at_clicks(MIN_CLICKS_GC - 0.01, -0.02)  # a wide gap, a weak winner
     assert (weak.polarity, weak.clear) == ("bone-dark", False) and "best GC" in weak.note
-    off_the_clicks = at_clicks(0.57, 0.16, winner_fits=False)  # GC bought by leaving the clicks
+    off_the_clicks = at_clicks(0.57, 0.16, winner_fits=False)  # GC bought by leaving the clicks, both
     assert (off_the_clicks.polarity, off_the_clicks.clear) == ("bone-dark", False)
     assert "clicks fitted" in off_the_clicks.note
+    kept = decide_polarity(database_bright, {"bone-dark": 0.34, "bone-bright": 0.21}, "auto", False, "PNG", None,
+                           refined_by=REFINED_AT_CLICKS, fits={"bone-dark": False, "bone-bright": True})
+    assert (kept.polarity, kept.clear) == ("bone-bright", False) and kept.clarity_gc == pytest.approx(-0.13)
 
 
 def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_conflict_never_trusted():

@@ -3,7 +3,7 @@ its clicks fit well enough to call the verdict clear."""
 
 import numpy as np
 
-from carmreg.logic.image.appearance import clear_at_clicks
+from carmreg.logic.image.appearance import verdict_at_clicks
 from carmreg.logic.registration.click_polarity import _evidence
 from carmreg.logic.registration.image_refine import RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit
@@ -23,18 +23,19 @@ def test_landmark_limit_is_relative_to_the_rival_and_capped():
     assert landmark_limit_mm(float("nan"), rule) == rule.max_landmark_mpde_mm
 
 
-def test_a_polarity_that_wins_by_pulling_the_ct_off_the_clicks_is_not_clear():
+def test_a_polarity_that_wins_gc_by_pulling_the_ct_off_the_clicks_loses_and_nothing_is_clear():
     """Seen on a large patient where bone barely shows: the wrong polarity reached GC 0.34 with the clicks 3.9 mm
-    off, the right one 0.21 at 0.5 mm, on the same labelling. Under the cap alone that looked clear."""
+    off, the right one 0.21 at 0.5 mm, on the same labelling. Under the 4 mm cap alone that looked clear and wrong;
+    now the polarity that keeps the clicks is used, and not trusted."""
     labels = [["L4", "L5", "S1"], ["L3", "L4", "L5"]]
     registered = {"bone-dark": [_fit(labels[0], 0.341, 3.93), _fit(labels[1], 0.198, 4.71)],
                   "bone-bright": [_fit(labels[0], 0.210, 0.53), _fit(labels[1], -0.071, 4.27)]}
     evidence = _evidence(registered, labels, "log-display", ConfidenceRule())
     assert evidence.scores == {"bone-dark": 0.341, "bone-bright": 0.210}
     assert evidence.fits == {"bone-dark": False, "bone-bright": True}
-    assert not clear_at_clicks(evidence.scores, evidence.fits)
+    assert verdict_at_clicks(evidence.scores, evidence.fits) == ("bone-bright", 0.210 - 0.341, False)
     tight = {"bone-dark": [_fit(labels[0], 0.341, 1.0), _fit(labels[1], 0.198, 4.71)],
              "bone-bright": registered["bone-bright"]}
     evidence = _evidence(tight, labels, "log-display", ConfidenceRule())
-    assert evidence.fits["bone-dark"] and clear_at_clicks(evidence.scores, evidence.fits)
+    assert evidence.fits["bone-dark"] and verdict_at_clicks(evidence.scores, evidence.fits)[::2] == ("bone-dark", True)
     assert evidence.as_dict()["mpde_mm"]["bone-dark"] == [1.0, 4.71]
