@@ -27,6 +27,7 @@ equals the labelling's margin.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -185,10 +186,10 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     p = params or IdentifyParameters()
     plan = plan_contest(ctx, ct, clicks, p)
     fits = plan.fits
-    for done in registered:
+    for done in registered:  # copies: the contest refits its leaders, the originals stay as registered
         for i, f in enumerate(fits):
             if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
-                fits[i] = done
+                fits[i] = dataclasses.replace(done, runs=list(done.runs))
     _contest(ctx, fits, plan.first)
     stable = True
     if p.confirm_leaders:
