@@ -212,7 +212,7 @@ class CarmRegLogic:
         if not a.clear:
             state.warnings.append(f"X-ray polarity: {a.note}")
         if a.orientation == "as-stored" and not a.orientation_clear:
-            state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned almost as well as "
+            state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned about as well as "
                                   "as stored; check that the display is not mirrored or rotated")
         return a.as_dict()
 

@@ -121,7 +121,7 @@ def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_confl
 
 def test_only_a_clear_polarity_and_a_clear_lead_of_the_stored_orientation_are_trusted():
     """A mirrored display of a near-symmetric view can lead as stored by a hair: no confident answer on it."""
-    from carmreg.logic.image.appearance import trusted_appearance
+    from carmreg.logic.image.appearance import REFUSE_ORIENTATION_GC, trusted_appearance
 
     assert trusted_appearance(True, "as-stored", True)
     assert not trusted_appearance(True, "as-stored", False)          # stored leads by < CLEAR_ORIENTATION_GC
@@ -130,6 +130,13 @@ def test_only_a_clear_polarity_and_a_clear_lead_of_the_stored_orientation_are_tr
     a = decide_polarity({"bone-dark": 0.50, "bone-bright": 0.20}, None, "auto", True, "PNG", None)
     a.set_orientation({"as-stored": 0.40, "mirrored-left-right": 0.39, "flipped-up-down": 0.2, "turned-180": 0.2})
     assert a.orientation == "as-stored" and not a.orientation_clear and not a.trusted
+    # another orientation leading by less than REFUSE_ORIENTATION_GC (noise on some CTs): unclear, not refused
+    a.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.30 + REFUSE_ORIENTATION_GC - 0.02,
+                       "flipped-up-down": 0.2, "turned-180": 0.2})
+    assert a.orientation == "as-stored" and not a.orientation_clear and not a.trusted
+    a.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.30 + REFUSE_ORIENTATION_GC + 0.02,
+                       "flipped-up-down": 0.2, "turned-180": 0.2})
+    assert a.orientation == "mirrored-left-right" and not a.trusted
 
 
 @pytest.fixture(scope="module")
