@@ -107,7 +107,8 @@ class Appearance:
     storage: str                      # "linear-intensity" (-log) | "log-display" (linear)
     decided_by: str                   # "image" | "image (<refined_by>)" | "user" | "header ..."
     clear: bool                       # the evidence clearly supports ``polarity`` (or the user's choice)
-    clarity_gc: float                 # GC gap between the polarities (database or refined scores)
+    clarity_gc: float                 # GC gap between the polarities (database or refined scores; at the clicks
+    #                                   the used polarity's lead, < 0 when the other gained GC off the clicks)
     threshold_gc: float               # the gap called clear
     scores: dict                      # {"database": {"bone-dark": g, "bone-bright": g}, "refined": {...} | None,
     #                                    "storage": {"linear-intensity": g, "log-display": g}}
