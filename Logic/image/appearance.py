@@ -132,10 +132,9 @@ class Appearance:
     def set_storage(self, gc_by_storage: dict) -> None:
         """Record the best GC of each conversion (``storage_gc``) and, for a bone-dark image, use the
         better-agreeing one (module docstring)."""
-        scores = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
-        self.scores["storage"] = scores
+        self.scores["storage"] = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
         if self.bone_dark:
-            self.storage = max(scores, key=scores.get)
+            self.storage = better_storage(gc_by_storage)
 
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""
@@ -174,6 +173,11 @@ def polarity_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, fact
     g = similarity("gc", _coarse(rank_image(pixels, mask), factor, shape), drrs, coarse_mask)
     return {"bone-dark": float(np.max(-g)), "bone-bright": float(np.max(g)),
             "best_index": {"bone-dark": int(np.argmax(-g)), "bone-bright": int(np.argmax(g))}}
+
+
+def better_storage(gc_by_storage: dict) -> str:
+    """The conversion of a bone-dark image whose best DRR agrees more (``storage_gc``; module docstring)."""
+    return max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))
 
 
 def storage_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:

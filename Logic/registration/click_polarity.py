@@ -32,11 +32,10 @@ Frames and units as in ``labelling_fit``.
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 from carmreg.logic.image.appearance import verdict_at_clicks
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling
+from carmreg.logic.registration.labelling_fit import LabellingFit, fit_labelling
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
 
@@ -66,8 +65,9 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
                        progress=None) -> ClickPolarity:
     """Register the leading labellings under each polarity until the scores are clear (module docstring).
     ``contexts``: {polarity: FitContext} whose images are the X-ray converted with that polarity (bone dark with
-    ``dark_storage``); ``rule``: the level confidence rule, whose landmark limits say when the clicks fit;
-    ``progress(done, total)`` is called before each registration."""
+    ``dark_storage``), without a per-labelling hook (``progress`` reports instead); ``rule``: the level confidence
+    rule, whose landmark limits say when the clicks fit; ``progress(done, total)`` is called before each
+    registration."""
     leaders = list(plan.first) if plan.given_index is not None else list(plan.first[:MAX_UNNAMED_LEADERS])
     count = len(leaders) if plan.given_index is not None else min(UNNAMED_LEADERS, len(leaders))
     registered = {polarity: [] for polarity in contexts}
@@ -76,7 +76,7 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
             for i in leaders[len(registered[polarity]):count]:
                 if progress is not None:
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
-                registered[polarity].append(fit_labelling(_quiet(ctx), _fresh(plan.fits[i])))
+                registered[polarity].append(fit_labelling(ctx, _fresh(plan.fits[i])))
         evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
         if count >= len(leaders) or verdict_at_clicks(evidence.scores, evidence.fits)[2]:
             return evidence
@@ -98,9 +98,3 @@ def _fresh(plan: LabellingFit) -> LabellingFit:
     """The planned labelling (depth search only), as a new object to register."""
     return LabellingFit(list(plan.labels), plan.shift, plan.points_lps_mm, plan.uv_px, plan.depth)
 
-
-def _quiet(ctx: FitContext) -> FitContext:
-    """``ctx`` without its per-labelling progress hook (the caller reports)."""
-    out = copy.copy(ctx)
-    out.on_labelling = None
-    return out

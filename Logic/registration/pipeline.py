@@ -42,6 +42,7 @@ from carmreg.logic.image.appearance import (
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
+    better_storage,
     decide_polarity,
     image_polarity,
     orientation_scores,
@@ -222,7 +223,7 @@ class CarmRegLogic:
         p, clicks = state.parameters, state.xray_landmarks
         if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
             return None
-        dark_storage = max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))
+        dark_storage = better_storage(gc_by_storage)
         contexts = {}
         for polarity in POLARITIES:
             dark = polarity == "bone-dark"

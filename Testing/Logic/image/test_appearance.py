@@ -167,6 +167,12 @@ def _inverted_in_field(pixels: np.ndarray) -> np.ndarray:
     return np.where(pixels > 0, np.clip(hi - pixels, 0, None), 0.0)
 
 
+def _bright_png(pixels: np.ndarray, geometry, path) -> XrayImage:
+    """The simulated (bone-dark) image inverted inside its field, saved as a 16-bit PNG and read back."""
+    Image.fromarray(np.round(_inverted_in_field(pixels) / pixels.max() * 65535).astype(np.uint16)).save(path)
+    return load_xray(path, sdd_mm=geometry.intrinsics.sdd_mm, pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
+
+
 @pytest.mark.slow
 def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct, case, tmp_path, tmp_path_factory):
     sim, geometry = case
@@ -176,10 +182,7 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
     assert (a.polarity, a.decided_by, a.clear, a.orientation) == ("bone-dark", "image", True, "as-stored")
     assert a.header_polarity == "bone-bright" and a.clarity_gc >= 0.05
 
-    bright_png = tmp_path / "bright.png"
-    Image.fromarray(np.round(_inverted_in_field(pixels) / pixels.max() * 65535).astype(np.uint16)).save(bright_png)
-    bright = load_xray(bright_png, sdd_mm=geometry.intrinsics.sdd_mm,
-                       pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
+    bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
     assert bright.bone_dark  # what a PNG "says": nothing, so the old default
     b = _appearance(sample_ct, bright, tmp_path_factory)
     assert (b.polarity, b.clear, b.storage) == ("bone-bright", True, "log-display")
@@ -203,10 +206,7 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     ct, _, centroids = sample_ct
     sim, geometry = case
     pixels = sim.pixels.astype(np.float64)
-    bright_png = tmp_path / "bright.png"
-    Image.fromarray(np.round(_inverted_in_field(pixels) / pixels.max() * 65535).astype(np.uint16)).save(bright_png)
-    bright = load_xray(bright_png, sdd_mm=geometry.intrinsics.sdd_mm,
-                       pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
+    bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
