@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from carmreg import signals
 from carmreg.logic.errors import CarmRegError
 
 EXIT_OK, EXIT_CHECKS_FAILED, EXIT_USER_ERROR = 0, 1, 2
@@ -257,21 +258,6 @@ def _check_numbers(args) -> None:
         raise CarmRegError("--out '' is empty; give the output folder (or file prefix for drr)")
 
 
-def _install_signal_handlers() -> None:
-    """SIGTERM (and SIGHUP) unwind like Ctrl-C, so every temporary file and staging folder is removed."""
-    import signal
-
-    def terminate(signum, frame):
-        raise SystemExit(128 + signum)
-
-    for name in ("SIGTERM", "SIGHUP"):
-        if hasattr(signal, name):
-            try:
-                signal.signal(getattr(signal, name), terminate)
-            except (ValueError, OSError):  # not the main thread
-                pass
-
-
 def cmd_register(args) -> int:
     _check_out_dir(args.out)
     xray = _load_xray(args)
@@ -415,7 +401,7 @@ COMMANDS = {"register": cmd_register, "demo": cmd_demo, "drr": cmd_drr, "simulat
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    _install_signal_handlers()
+    signals.install()
     try:
         _check_numbers(args)
         return COMMANDS[args.command](args)
