@@ -32,7 +32,7 @@ from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.image.prepare import bin_image, bin_mask
-from carmreg.logic.similarity.metrics import similarity
+from carmreg.logic.similarity.metrics import prepare
 
 
 @dataclass
@@ -63,10 +63,11 @@ class RefineResult:
     objective_end: float = float("nan")
 
 
-def _objective(level, geometry, intrinsics, poses, fixed, mask, points_lps_mm, uv_px, p: RefineParameters,
+def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px, p: RefineParameters,
                spans=None):
+    """(f, similarity, clicked mPDE) of each pose; ``scores`` = ``metrics.prepare`` against the X-ray."""
     drrs = render_line_integrals(level, geometry, poses, intrinsics, spans)
-    score = similarity(p.metric, fixed, drrs, mask, dtype=np.float64)  # float64: rankings repeat bit for bit
+    score = scores(drrs)
     rotation = np.sum((poses[:, 3:] / 10.0) ** 2, axis=1)
     if len(points_lps_mm) == 0:
         return (1.0 - score) + p.rotation_weight * rotation, score, np.full(len(poses), np.nan)
@@ -95,9 +96,10 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         "bounds": [list(x0 - half), list(x0 + half)], "tolfun": 1e-5, "tolx": 1e-3,
         "verbose": -9, "verb_log": 0, "verb_disp": 0})
     spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it
+    scores = prepare(p.metric, fixed, fmask, dtype=np.float64)  # float64: rankings repeat bit for bit
 
     def objective(poses):
-        return _objective(level, geometry, small, poses, fixed, fmask, points_lps_mm, uv_px, p, spans)
+        return _objective(level, geometry, small, poses, scores, points_lps_mm, uv_px, p, spans)
 
     f0, s0, _ = objective(x0[None])
     best = (float(f0[0]), float(s0[0]), x0)

@@ -7,7 +7,7 @@ from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import FineParameters, fine_search
-from carmreg.logic.similarity.metrics import METRICS, similarity
+from carmreg.logic.similarity.metrics import METRICS, prepare, similarity
 
 # A thoracolumbar spine: 7 centroids along z, slightly kyphotic, about 28 mm apart (LPS mm).
 SPINE_LPS_MM = np.array([[2.0 * np.sin(k / 3), 40 + 0.3 * (k - 3) ** 2, 85 - 28.0 * k] for k in range(7)])
@@ -47,6 +47,29 @@ def test_metrics_ignore_pixels_outside_the_mask():
     for metric in METRICS:
         s = similarity(metric, fixed, moving, mask)
         assert s[0] == pytest.approx(s[1], rel=1e-5, abs=1e-6), metric
+
+
+def test_gc_is_the_mean_correlation_of_the_two_derivative_images_inside_the_eroded_mask():
+    """GC by its definition (np.corrcoef of central differences at pixels whose 3x3 neighbourhood is in the
+    mask), the same from the prepared form, and exactly negated for the inverted image."""
+    rng = np.random.default_rng(5)
+    fixed, moving = _blob_image() + rng.normal(0, 0.05, (48, 48)), np.stack([_blob_image((2, 1)), _blob_image()])
+    mask = np.zeros(fixed.shape, bool)
+    mask[4:40, 6:45] = True
+    inner = np.zeros_like(mask)
+    inner[5:39, 7:44] = True
+
+    def derivatives(img):
+        du, dv = np.zeros_like(img), np.zeros_like(img)
+        du[:, 1:-1], dv[1:-1, :] = img[:, 2:] - img[:, :-2], img[2:, :] - img[:-2, :]
+        return du[inner], dv[inner]
+
+    fu, fv = derivatives(fixed)
+    expected = [0.5 * (np.corrcoef(fu, mu)[0, 1] + np.corrcoef(fv, mv)[0, 1]) for mu, mv in map(derivatives, moving)]
+    scores = similarity("gc", fixed, moving, mask, dtype=np.float64)
+    assert scores == pytest.approx(expected, abs=1e-12)
+    assert prepare("gc", fixed, mask, dtype=np.float64)(moving) == pytest.approx(expected, abs=1e-12)
+    assert similarity("gc", fixed, 3.0 - 2.0 * moving, mask, dtype=np.float64) == pytest.approx(-scores, abs=1e-12)
 
 
 def test_depth_search_recovers_magnification_from_intervertebral_distances():
