@@ -222,9 +222,7 @@ def _print_report(result, seconds: float, out) -> None:
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
     if result.appearance is not None:
-        a = result.appearance
-        print(f"X-ray appearance: {a.note}; stored as {a.storage.replace('-', ' ')}; orientation "
-              f"{a.orientation.replace('-', ' ')}{'' if a.orientation_clear else ' (unclear)'}")
+        print(f"X-ray appearance: {result.appearance.summary()}")
     if result.level_check:
         from carmreg.logic.report.style import level_summary
 

@@ -302,9 +302,7 @@ class ResultPanel(QtWidgets.QWidget):
             self.appearance_label.setText("-")
             self.appearance_label.setStyleSheet("")
             return
-        orientation = appearance.orientation.replace("-", " ")
-        self.appearance_label.setText(f"{appearance.note}; stored as {appearance.storage.replace('-', ' ')}; "
-                                      f"matches the CT {orientation}")
+        self.appearance_label.setText(appearance.summary())
         self.appearance_label.setStyleSheet("" if appearance.trusted else "color: #ffa94d;")
 
     def set_result(self, result, click_names: list[str] | None = None) -> None:

@@ -91,7 +91,8 @@ def hu_to_mu(hu: np.ndarray, mu_water_per_mm: float = MU_WATER_PER_MM) -> np.nda
 
     mu = mu_water * (1000 + HU) / 1000
     """
-    mu = np.add(hu, np.float32(1000.0), dtype=np.float32)  # one float32 array, updated in place
+    mu = np.array(hu, dtype=np.float32)  # one new float32 array, updated in place
+    mu += np.float32(1000.0)
     mu *= np.float32(mu_water_per_mm / 1000.0)
     return np.maximum(mu, np.float32(0.0), out=mu)
 

@@ -63,6 +63,17 @@ orientation led correctly displayed images by up to 0.105 GC on the tune half; `
 chosen above that. Applied to the recorded runs: correctly displayed second-CT images refused 0 of 108, was 69;
 mirrored displays refused 9 of 9 on the chest CT and 0 of 12 on the second CT, unclear instead).
 
+With clicks and a clear polarity, a database verdict that is not clear as stored is taken again where the clicks
+put the CT (``registration.click_orientation``): the polarity check's best labelling is registered on each rival
+orientation of the image (those the database could not rule out, and always the left-right mirror) and its GC
+there, g(o), replaces the database scores (``Appearance.set_orientation_at_clicks``, ``orientation_decided_by``).
+Another orientation leading the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted is taken
+(the image refused); the stored one leading every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC`` is clear;
+anything between is unclear. Both were chosen on the tune half of the appearance benchmark: where the check ran
+(second CT), correctly displayed images led their mirror by 0.281-0.329 GC or their mirror could not fit the clicks
+at all, and the mirrored display trailed by 0.276; registered as stored and mirrored by hand (both CTs, the same
+polarity, clicks fitted), correctly displayed images led by 0.213-0.498.
+
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
 user's polarity the image clearly contradicts, keeps any level answer from being confident
@@ -87,14 +98,28 @@ REFINED_AT_DATABASE_POSES = "refined"            # each polarity's best database
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
+CLEAR_ORIENTATION_AT_CLICKS_GC = 0.10   # at the clicks' poses: the stored orientation's lead called clear
+REFUSE_ORIENTATION_AT_CLICKS_GC = 0.10  # ... and another orientation's lead that refuses the image
 ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
                 "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
                 "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
 
 
+def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndarray:
+    """Where pixels (u, v) = (column, row) of the stored image, ``size_px`` = (columns, rows), land in its
+    orientation ``ORIENTATIONS[name]`` (0-based pixel centres; np.rot90 turns counter-clockwise)."""
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    u, v = uv[:, 0], uv[:, 1]
+    right, bottom = size_px[0] - 1.0 - u, size_px[1] - 1.0 - v
+    turned = {"as-stored": (u, v), "mirrored-left-right": (right, v), "flipped-up-down": (u, bottom),
+              "turned-180": (right, bottom), "turned-90": (v, right), "turned-270": (bottom, u)}[name]
+    return np.stack(turned, axis=1)
+
+
 def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -> bool:
     """Whether a level answer may be confident on this appearance: the polarity clear, and the image matching the
-    CT best as stored by a clear lead (``CLEAR_ORIENTATION_GC``). Also applied to recorded runs
+    CT best as stored by a clear lead (``CLEAR_ORIENTATION_GC`` on the database, ``CLEAR_ORIENTATION_AT_CLICKS_GC``
+    at the clicks' poses). Also applied to recorded runs
     (``Testing/Benchmarks/calibrate_confidence.py``)."""
     return bool(clear and orientation == "as-stored" and orientation_clear)
 
@@ -118,7 +143,9 @@ class Appearance:
     note: str = ""                    # in words, for the report and the GUI
     orientation: str = "as-stored"    # the orientation the image is taken to have (ORIENTATIONS; module docstring)
     orientation_scores: dict | None = None  # orientation -> best signed GC over the (halved) database
-    orientation_clear: bool = True    # the stored orientation leads every other by CLEAR_ORIENTATION_GC
+    orientation_clear: bool = True    # the stored orientation leads every other clearly (by whatever decided)
+    orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)"
+    orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
 
     @property
     def bone_dark(self) -> bool:
@@ -143,6 +170,35 @@ class Appearance:
         lead = scores["as-stored"] - max((v for k, v in scores.items() if k != "as-stored"), default=-np.inf)
         self.orientation = best if scores[best] - scores["as-stored"] >= REFUSE_ORIENTATION_GC else "as-stored"
         self.orientation_clear = bool(lead >= CLEAR_ORIENTATION_GC)
+
+    def set_orientation_at_clicks(self, evidence: dict) -> None:
+        """Decide the orientation again from the GC at the clicks' poses (``click_orientation``; ``evidence``:
+        its ``as_dict()``), which replaces the database's verdict: another orientation is taken (and the image
+        refused) when it leads the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted; the
+        stored one is clear when it leads every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC``."""
+        self.orientation_at_clicks = dict(evidence)
+        self.orientation_decided_by = f"image ({REFINED_AT_CLICKS})"
+        scores, fitted = evidence["scores"], evidence["fitted"]
+        stored = scores["as-stored"]
+        judged = [o for o in scores if o != "as-stored" and np.isfinite(scores[o])]  # nan: clicks not fittable
+        rival = max(judged, key=scores.get, default=None)
+        lead = stored - scores[rival] if rival is not None else np.inf
+        self.orientation = rival if -lead >= REFUSE_ORIENTATION_AT_CLICKS_GC and fitted[rival] else "as-stored"
+        self.orientation_clear = bool(lead >= CLEAR_ORIENTATION_AT_CLICKS_GC)
+
+    def summary(self) -> str:
+        """The appearance in words, for the CLI, the window and the report: polarity (``note``), storage, and the
+        orientation with how clearly and from what it was found."""
+        where = "at the clicks' poses" if self.orientation_at_clicks is not None else "on the DRR database"
+        how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
+        return (f"{self.note}; stored as {self.storage.replace('-', ' ')}; matches the CT "
+                f"{self.orientation.replace('-', ' ')} ({where}{how})")
+
+    def orientation_gc(self) -> tuple[float, float]:
+        """(GC of the orientation taken, GC as stored) from the scores that decided it."""
+        scores = (self.orientation_at_clicks["scores"] if self.orientation_at_clicks is not None
+                  else self.orientation_scores)
+        return float(scores[self.orientation]), float(scores["as-stored"])
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -111,13 +111,17 @@ def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.
     return LabellingFit(list(labels), shift, np.asarray(points_lps_mm, float), np.asarray(uv_px, float), depth)
 
 
-def fit_labelling(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = np.inf) -> LabellingFit:
     """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose, then the
-    wide image refinement that scores it (module docstring). Returns the same object, filled."""
+    wide image refinement that scores it (module docstring). Returns the same object, filled. A labelling whose
+    landmark fit leaves the clicks' mPDE above ``landmark_gate_mm`` is not refined (``refined`` stays False):
+    the fine search minimises that mPDE, and the image refinement only trades it for image agreement."""
     if ctx.on_labelling is not None:
         ctx.on_labelling(list(fit.labels))
     fit.fine = fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine,
                            should_stop=ctx.should_stop)
+    if fit.fine.mpde_mm > landmark_gate_mm:
+        return fit
     return _refine_from(ctx, fit, fit.fine.pose)
 
 

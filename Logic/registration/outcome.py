@@ -69,7 +69,7 @@ def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
         problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
     a = state.appearance
     if a is not None and a.orientation != "as-stored":
-        best, stored = a.orientation_scores[a.orientation], a.orientation_scores["as-stored"]
+        best, stored = a.orientation_gc()
         problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
                         f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
                         "acquired (head up, patient's right on the viewer's left) and register again")

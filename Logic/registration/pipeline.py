@@ -39,6 +39,7 @@ from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
     CLEAR_POLARITY_GC,
+    ORIENTATIONS,
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
@@ -54,6 +55,7 @@ from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.registration.click_orientation import orientation_at_clicks, oriented_context, rival_orientations
 from carmreg.logic.registration.click_polarity import ClickPolarity, polarity_at_clicks
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
@@ -210,6 +212,7 @@ class CarmRegLogic:
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
+        self._orientation_at_clicks(state)
         if not a.clear:
             state.warnings.append(f"X-ray polarity: {a.note}")
         if a.orientation == "as-stored" and not a.orientation_clear:
@@ -236,6 +239,22 @@ class CarmRegLogic:
                          f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
 
         return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
+
+    def _orientation_at_clicks(self, state: RegistrationState) -> None:
+        """With clicks and a clear polarity, the orientations the database could not rule out judged where the
+        clicks put the CT (``click_orientation``), which then decides; nothing to do when the database's verdict
+        is already clear as stored."""
+        a, cp = state.appearance, state.click_polarity
+        if cp is None or not a.clear or a.polarity not in cp.registered or (
+                a.orientation == "as-stored" and a.orientation_clear):
+            return
+        best = max(cp.registered[a.polarity], key=lambda f: f.similarity)
+        base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
+        contexts = {o: oriented_context(base, o, ORIENTATIONS[o]) for o in rival_orientations(a.orientation_scores)}
+        self._report("spatial", 0.95, "judging the display's orientation at the clicks")
+        evidence = orientation_at_clicks(contexts, best, state.xray.size_px, state.parameters.identify.rule,
+                                         names_follow_clicks=state.xray_landmarks.named)
+        a.set_orientation_at_clicks(evidence.as_dict())
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,
                      on_labelling=None) -> FitContext:

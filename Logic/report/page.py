@@ -109,8 +109,7 @@ def _inputs_block(doc: dict) -> str:
 def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     """How the levels were named: the X-ray's appearance as found, the mode and every labelling registered with
     its score, best first."""
-    seen_as = (f"X-ray: {appearance.note}; stored as {appearance.storage.replace('-', ' ')}; matches the CT "
-               f"{appearance.orientation.replace('-', ' ')}. ") if appearance is not None else ""
+    seen_as = f"X-ray: {appearance.summary()}. " if appearance is not None else ""
     if not check:
         return _wrap(seen_as + "The level names were not checked against the image (level check off).", 110)
     mode = MODE_DESCRIPTION.get(check.mode, str(check.mode))

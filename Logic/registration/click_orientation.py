@@ -1,0 +1,104 @@
+"""The X-ray's orientation judged where the clicks put the CT (beyond the paper; ``image.appearance`` orientation).
+
+A C-arm display can be mirrored left-right or turned, which no header records. The database's verdict
+(``appearance.orientation_scores``) compares each orientation of the image with DRRs at poses without rotation and
+at one depth; on a CT whose DRRs carry features of their own those scores are noise (the appearance benchmark's
+second CT: the stored orientation of correctly displayed images led by less than ``CLEAR_ORIENTATION_GC`` in most
+cases, so their level answers could never be confident).
+
+With clicks, the CT can be put where they say first. The best registration of the polarity check
+(``click_polarity``: labelling L*, GC g(as stored)) is repeated on each rival orientation o of the image - the
+image, its exposed field, the clicks and the detector's principal point and pixel spacing all turned with it
+(``appearance.orient_uv``) - exactly as the level check registers a labelling (``plan_labelling``,
+``fit_labelling``). Names the user gave stay with their clicks (they are anatomy); unnamed clicks get L*'s names
+head to sacrum along the turned image, as any labelling of unnamed clicks is made (so a display turned upside
+down is judged with its levels the right way up)::
+
+    g(o) = GC of L* registered on o(image) with o(clicks)
+
+A display shown as acquired matches the CT as stored; a mirrored one matches it mirrored. The rivals judged are
+the orientations the database could not rule out (within ``CLEAR_ORIENTATION_GC`` of the stored one, or ahead of
+it) and always the left-right mirror, the display setting most often wrong. ``Appearance.set_orientation_at_clicks``
+decides from g. Frames and units as in ``labelling_fit``; pixel (u, v) = (column, row), 0-based centres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
+from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, orient_uv
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
+from carmreg.logic.registration.labellings import order_along_spine
+from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
+
+ALWAYS_CHECKED = ("mirrored-left-right",)
+
+
+@dataclass
+class ClickOrientation:
+    """The orientation evidence at the clicks' poses."""
+
+    labels: list            # L*, the labelling registered in every orientation
+    scores: dict            # {orientation: GC of L* registered on that orientation of the image}
+    mpde_mm: dict           # {orientation: the clicks' mPDE of that registration}
+    fitted: dict            # {orientation: mPDE within the level rule's limit against the stored one's}
+
+    def as_dict(self) -> dict:
+        return {"labels": list(self.labels), "scores": dict(self.scores), "mpde_mm": dict(self.mpde_mm),
+                "fitted": dict(self.fitted)}
+
+
+def rival_orientations(database_scores: dict) -> list[str]:
+    """The orientations to judge at the clicks: those the database could not rule out, and the mirror."""
+    stored = database_scores["as-stored"]
+    close = [o for o, g in database_scores.items() if o != "as-stored" and g > stored - CLEAR_ORIENTATION_GC]
+    return sorted(set(close) | {o for o in ALWAYS_CHECKED if o in database_scores},
+                  key=lambda o: -database_scores[o])
+
+
+def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
+    """The C-arm geometry of the image turned by ``appearance.ORIENTATIONS[name]``: its size, pixel spacing and
+    principal point turned with it (the source and the detector plane unchanged)."""
+    intr = geometry.intrinsics
+    cols, rows = intr.size_px
+    (u0, v0), = orient_uv(np.array([intr.principal_point_px], float), name, intr.size_px)
+    quarter = name in ("turned-90", "turned-270")
+    size = (rows, cols) if quarter else (cols, rows)
+    spacing = tuple(reversed(intr.pixel_spacing_mm)) if quarter else tuple(intr.pixel_spacing_mm)
+    return geometry.with_intrinsics(CarmIntrinsics(intr.sdd_mm, spacing, size, (float(u0), float(v0)),
+                                                   dict(intr.sources)))
+
+
+def orientation_at_clicks(contexts: dict, best: LabellingFit, size_px: tuple[int, int], rule: ConfidenceRule,
+                          names_follow_clicks: bool) -> ClickOrientation:
+    """Register ``best`` (L*, already registered as stored) on each rival orientation (module docstring).
+    ``contexts``: {orientation: FitContext} on that orientation of the X-ray (``oriented_context``);
+    ``size_px``: (columns, rows) of the image as stored; ``names_follow_clicks``: the user named the clicks (module
+    docstring); ``rule``: the level confidence rule, whose landmark
+    limit says whether a rival's registration keeps the clicks fitted as well as the stored one's. A rival whose
+    clicks cannot be fitted within the rule's cap even by the landmarks alone is not refined: GC nan (on a
+    correctly displayed image, a turn of 90 degrees lays the spine across the detector)."""
+    scores, mpde = {"as-stored": float(best.similarity)}, {"as-stored": float(best.mpde_mm)}
+    for name, ctx in contexts.items():
+        uv = orient_uv(best.uv_px, name, size_px)
+        if not names_follow_clicks:  # L*'s names head to sacrum on the turned image, as a labelling is made
+            uv = uv[order_along_spine(uv)]
+        fit = fit_labelling(ctx, plan_labelling(ctx, best.labels, best.shift, best.points_lps_mm, uv),
+                            landmark_gate_mm=rule.max_landmark_mpde_mm)
+        scores[name] = float(fit.similarity)  # nan: the clicks cannot be fitted on it (not refined)
+        mpde[name] = float(fit.mpde_mm if fit.refined else fit.fine.mpde_mm)
+    limit = landmark_limit_mm(mpde["as-stored"], rule)
+    fitted = {name: bool(name == "as-stored" or (np.isfinite(scores[name]) and m <= limit))
+              for name, m in mpde.items()}
+    return ClickOrientation(list(best.labels), scores, mpde, fitted)
+
+
+def oriented_context(ctx: FitContext, name: str, orient) -> FitContext:
+    """``ctx`` on orientation ``name`` of its X-ray: ``orient(array)`` turns an image (``ORIENTATIONS[name]``);
+    the attenuation image, the field and the geometry are turned with it."""
+    return replace(ctx, geometry=oriented_geometry(ctx.geometry, name),
+                   xray_line_integral=np.ascontiguousarray(orient(ctx.xray_line_integral)),
+                   mask=np.ascontiguousarray(orient(ctx.mask)))
