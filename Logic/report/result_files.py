@@ -45,14 +45,15 @@ __all__ = ["RESULT_FILES", "result_dict", "save_png", "save_result", "to_uint8",
 
 
 def result_dict(result) -> dict:
-    """JSON-ready summary of a RegistrationResult."""
+    """JSON-ready summary of a RegistrationResult; a value that is not a finite number (a margin with no rival
+    labelling to measure it against is inf) is written as null."""
     import cma
     import numba
     import scipy
 
     g = result.geometry
     intr = g.intrinsics
-    return {
+    return to_jsonable({
         "ok": bool(result.ok),
         "warnings": list(result.warnings),
         "projection_matrix": np.asarray(result.projection_matrix, float).tolist(),
@@ -74,7 +75,7 @@ def result_dict(result) -> dict:
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
                             "numpy": np.__version__, "scipy": scipy.__version__, "cma": cma.__version__,
                             "numba": numba.__version__, "seed": result.parameters.fine.seed},
-    }
+    })
 
 
 def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5, 99.5)) -> np.ndarray:

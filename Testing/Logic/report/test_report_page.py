@@ -102,3 +102,20 @@ def test_overlay_png_draws_contradicted_names_in_the_contradiction_colour(tmp_pa
         assert red > 60 and green < 5, (red, green)
     else:
         assert green > 60 and red < 5, (red, green)
+
+
+def test_a_margin_without_a_rival_is_written_as_null_not_a_traceback(tmp_path):
+    """No clicks on a CT with few levels: one labelling only, so its margin is inf (seen on the appearance
+    benchmark's second CT: the result folder was never written). result.json says null."""
+    import json
+
+    from carmreg.logic.report.result_files import save_result
+
+    result = _result("confident")
+    for level in result.levels:
+        level["name_margin"] = float("inf")
+    result.level_check.margin = float("inf")
+    paths = save_result(result, tmp_path / "out", result.xray_line_integral)
+    doc = json.loads(paths["result"].read_text())
+    assert [lv["name_margin"] for lv in doc["levels"]] == [None] * 4
+    assert doc["level_check"]["margin"] is None and doc["ok"] is True
