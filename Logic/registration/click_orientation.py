@@ -42,8 +42,8 @@ class ClickOrientation:
     """The orientation evidence at the clicks' poses."""
 
     labels: list            # L*, the labelling registered in every orientation
-    scores: dict            # {orientation: GC of L* registered on that orientation of the image}
-    mpde_mm: dict           # {orientation: the clicks' mPDE of that registration}
+    scores: dict            # {orientation: GC of L* registered on that orientation of the image; nan: not}
+    mpde_mm: dict           # {orientation: the clicks' mPDE of that registration (of its landmark fit if none)}
     fitted: dict            # {orientation: mPDE within the level rule's limit against the stored one's}
 
     def as_dict(self) -> dict:
