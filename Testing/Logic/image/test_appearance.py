@@ -6,15 +6,13 @@ import numpy as np
 import pytest
 from PIL import Image
 from scipy import ndimage
+from simulated_cases import simulated_ap_case
 
 from carmreg.logic.image.appearance import decide_polarity, rank_image
 from carmreg.logic.image.field import field_mask
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
-from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
-from carmreg.logic.simulation.scene import random_pose
-from carmreg.logic.simulation.simulator import simulate_case
 
 
 def test_rank_image_is_the_same_for_any_increasing_storage():
@@ -142,13 +140,7 @@ def test_only_a_clear_polarity_and_a_clear_lead_of_the_stored_orientation_are_tr
 @pytest.fixture(scope="module")
 def case(sample_ct):
     """One realistic simulated AP case (512 px, bone dark as stored) of the sample CT, T8 in the middle."""
-    ct, labels, centroids = sample_ct
-    rng = np.random.default_rng(4321)
-    options = sample_options(rng, SimulationOptions(size_px=(512, 512), pixel_spacing_mm=0.5))
-    geometry = default_geometry(ct, options)
-    pose = random_pose(rng, options, centroids, "T8", geometry=geometry)
-    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=11)
-    return sim, geometry
+    return simulated_ap_case(sample_ct, 4321, "T8", 11)
 
 
 def _appearance(sample_ct, xray, tmp_path_factory):

@@ -3,6 +3,7 @@ image first, then the rule, then a realistic case shown as acquired and shown up
 
 import numpy as np
 import pytest
+from simulated_cases import simulated_ap_case
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.image.appearance import (
@@ -22,9 +23,6 @@ from carmreg.logic.registration.click_orientation import (
 )
 from carmreg.logic.registration.labelling_fit import FitContext
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
-from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
-from carmreg.logic.simulation.scene import random_pose
-from carmreg.logic.simulation.simulator import simulate_case
 
 # camera-frame maps that turn (or mirror) the image as ORIENTATIONS does: x_cam' = C x_cam
 CAMERA_TURNS = {"mirrored-left-right": np.diag([-1.0, 1.0, 1.0]), "flipped-up-down": np.diag([1.0, -1.0, 1.0]),
@@ -93,12 +91,7 @@ def test_the_rule_at_the_clicks_each_part_deciding():
 @pytest.fixture(scope="module")
 def case(sample_ct):
     """A realistic simulated AP case of the sample CT (bone dark, 512 px), T10 in the middle, named clicks."""
-    ct, labels, centroids = sample_ct
-    rng = np.random.default_rng(2468)
-    options = sample_options(rng, SimulationOptions(size_px=(512, 512), pixel_spacing_mm=0.5))
-    geometry = default_geometry(ct, options)
-    pose = random_pose(rng, options, centroids, "T10", geometry=geometry)
-    return simulate_case(ct, labels, centroids, geometry, pose, options, seed=5), geometry
+    return simulated_ap_case(sample_ct, 2468, "T10", 5)
 
 
 def _judged(sample_ct, pixels, uv_px, labels, geometry, tmp_path_factory, rivals):

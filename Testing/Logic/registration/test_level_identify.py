@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from simulated_cases import simulated_ap_case
 
 from carmreg.logic.errors import LandmarkError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
@@ -22,9 +23,6 @@ from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence
 from carmreg.logic.registration.levels import central_level, spatial_peaks, visible_levels
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.simulation.evaluation import evaluate
-from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
-from carmreg.logic.simulation.scene import random_pose
-from carmreg.logic.simulation.simulator import simulate_case
 
 CT_NAMES = ["T9", "T10", "T11", "T12", "L1"]
 
@@ -199,12 +197,7 @@ def sample(sample_ct):
 
 @pytest.fixture(scope="module")
 def simulated(sample):
-    ct, labels, centroids = sample
-    rng = np.random.default_rng(1234)
-    options = sample_options(rng, SimulationOptions(size_px=(512, 512), pixel_spacing_mm=0.5))
-    geometry = default_geometry(ct, options)
-    pose = random_pose(rng, options, centroids, "T6", geometry=geometry)
-    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=7)
+    sim, geometry = simulated_ap_case(sample, 1234, "T6", 7)
     xray = XrayImage(sim.pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, True, "sim")
     return sim, xray
 
