@@ -63,10 +63,10 @@ orientation led correctly displayed images by up to 0.105 GC on the tune half; `
 chosen above that. Applied to the recorded runs: correctly displayed second-CT images refused 0 of 108, was 69;
 mirrored displays refused 9 of 9 on the chest CT and 0 of 12 on the second CT, unclear instead).
 
-With clicks and a clear polarity, a database verdict that is not clear as stored is taken again where the clicks
-put the CT (``registration.click_orientation``): the polarity check's best labelling is registered on each rival
-orientation of the image (those the database could not rule out, and always the left-right mirror) and its GC
-there, g(o), replaces the database scores (``Appearance.set_orientation_at_clicks``, ``orientation_decided_by``).
+With clicks and a clear polarity, the orientation is taken again where the clicks put the CT
+(``registration.click_orientation``): the polarity check's best labelling is registered on each rival orientation
+of the image (those the database could not rule out, and always the left-right mirror) and its GC there, g(o),
+replaces the database scores (``Appearance.set_orientation_at_clicks``, ``orientation_decided_by``).
 Another orientation leading the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted is taken
 (the image refused); the stored one leading every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC`` is clear;
 anything between is unclear. Both were chosen on the tune half of the appearance benchmark: where the check ran

@@ -18,8 +18,10 @@ down is judged with its levels the right way up)::
 
 A display shown as acquired matches the CT as stored; a mirrored one matches it mirrored. The rivals judged are
 the orientations the database could not rule out (within ``CLEAR_ORIENTATION_GC`` of the stored one, or ahead of
-it) and always the left-right mirror, the display setting most often wrong. ``Appearance.set_orientation_at_clicks``
-decides from g. Frames and units as in ``labelling_fit``; pixel (u, v) = (column, row), 0-based centres.
+it) and always the left-right mirror, the display setting most often wrong: even a clear database verdict is
+checked against it (the database once called a mirrored display clearly as stored, lead 0.064; only its unclear
+polarity kept that answer from being trusted). ``Appearance.set_orientation_at_clicks`` decides from g. Frames
+and units as in ``labelling_fit``; pixel (u, v) = (column, row), 0-based centres.
 """
 
 from __future__ import annotations

@@ -241,12 +241,10 @@ class CarmRegLogic:
         return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
 
     def _orientation_at_clicks(self, state: RegistrationState) -> None:
-        """With clicks and a clear polarity, the orientations the database could not rule out judged where the
-        clicks put the CT (``click_orientation``), which then decides; nothing to do when the database's verdict
-        is already clear as stored."""
+        """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
+        judged where the clicks put the CT (``click_orientation``), which then decides."""
         a, cp = state.appearance, state.click_polarity
-        if cp is None or not a.clear or a.polarity not in cp.registered or (
-                a.orientation == "as-stored" and a.orientation_clear):
+        if cp is None or not a.clear or a.polarity not in cp.registered:
             return
         best = max(cp.registered[a.polarity], key=lambda f: f.similarity)
         base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
