@@ -64,9 +64,11 @@ chosen above that. Applied to the recorded runs: correctly displayed second-CT i
 mirrored displays refused 9 of 9 on the chest CT and 0 of 12 on the second CT, unclear instead).
 
 With clicks and a clear polarity, the orientation is taken again where the clicks put the CT
-(``registration.click_orientation``): the polarity check's best labelling is registered on each rival orientation
-of the image (those the database could not rule out, and always the left-right mirror) and its GC there, g(o),
-replaces the database scores (``Appearance.set_orientation_at_clicks``, ``orientation_decided_by``).
+(``registration.click_orientation``): the labellings of the polarity check are registered on each rival
+orientation of the image (those the database could not rule out, and always the left-right mirror) and the best
+GC there, g(o), replaces the database scores (``Appearance.set_orientation_at_clicks``,
+``orientation_decided_by``). A stored orientation the database found clearly worse than another is never made
+clear by it (a conflict).
 Another orientation leading the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted is taken
 (the image refused); the stored one leading every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC`` is clear;
 anything between is unclear. Both were chosen on the tune half of the appearance benchmark: where the check ran
@@ -175,7 +177,9 @@ class Appearance:
         """Decide the orientation again from the GC at the clicks' poses (``click_orientation``; ``evidence``:
         its ``as_dict()``), which replaces the database's verdict: another orientation is taken (and the image
         refused) when it leads the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted; the
-        stored one is clear when it leads every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC``."""
+        stored one is clear when it leads every judged rival by ``CLEAR_ORIENTATION_AT_CLICKS_GC`` and the database
+        did not find another orientation clearly better (a conflict of the two is never clear)."""
+        database_refused = self.orientation != "as-stored"  # the database's verdict, before this one
         self.orientation_at_clicks = dict(evidence)
         self.orientation_decided_by = f"image ({REFINED_AT_CLICKS})"
         scores, fitted = evidence["scores"], evidence["fitted"]
@@ -184,7 +188,7 @@ class Appearance:
         rival = max(judged, key=scores.get, default=None)
         lead = stored - scores[rival] if rival is not None else np.inf
         self.orientation = rival if -lead >= REFUSE_ORIENTATION_AT_CLICKS_GC and fitted[rival] else "as-stored"
-        self.orientation_clear = bool(lead >= CLEAR_ORIENTATION_AT_CLICKS_GC)
+        self.orientation_clear = bool(lead >= CLEAR_ORIENTATION_AT_CLICKS_GC and not database_refused)
 
     def summary(self) -> str:
         """The appearance in words, for the CLI, the window and the report: polarity (``note``), storage, and the

@@ -6,15 +6,20 @@ at one depth; on a CT whose DRRs carry features of their own those scores are no
 second CT: the stored orientation of correctly displayed images led by less than ``CLEAR_ORIENTATION_GC`` in most
 cases, so their level answers could never be confident).
 
-With clicks, the CT can be put where they say first. The best registration of the polarity check
-(``click_polarity``: labelling L*, GC g(as stored)) is repeated on each rival orientation o of the image - the
+With clicks, the CT can be put where they say first. The labellings the polarity check registered
+(``click_polarity``, under the polarity used; the best of them scores the stored orientation) are registered
+again on each rival orientation o of the image - the
 image, its exposed field, the clicks and the detector's principal point and pixel spacing all turned with it
 (``appearance.orient_uv``) - exactly as the level check registers a labelling (``plan_labelling``,
-``fit_labelling``). Names the user gave stay with their clicks (they are anatomy); unnamed clicks get L*'s names
-head to sacrum along the turned image, as any labelling of unnamed clicks is made (so a display turned upside
-down is judged with its levels the right way up)::
+``fit_labelling``). Names the user gave stay with their clicks (they are anatomy); unnamed clicks get each
+labelling's names head to sacrum along the turned image, as any labelling of unnamed clicks is made (so a display
+turned upside down is judged with its levels the right way up)::
 
-    g(o) = GC of L* registered on o(image) with o(clicks)
+    g(o) = max over the judged labellings L of the GC of L registered on o(image) with o(clicks)
+
+Every orientation gets the same labellings: judged with the stored orientation's best labelling alone, a mirrored
+display was once called clearly as stored (0.487 against 0.353, with a labelling two levels off; the mirror with
+the right labelling reaches 0.68).
 
 A display shown as acquired matches the CT as stored; a mirrored one matches it mirrored. The rivals judged are
 the orientations the database could not rule out (within ``CLEAR_ORIENTATION_GC`` of the stored one, or ahead of
@@ -43,7 +48,7 @@ ALWAYS_CHECKED = ("mirrored-left-right",)
 class ClickOrientation:
     """The orientation evidence at the clicks' poses."""
 
-    labels: list            # L*, the labelling registered in every orientation
+    labels: list            # the labellings registered in every orientation (the polarity check's)
     scores: dict            # {orientation: GC of L* registered on that orientation of the image; nan: not}
     mpde_mm: dict           # {orientation: the clicks' mPDE of that registration (of its landmark fit if none)}
     fitted: dict            # {orientation: mPDE within the level rule's limit against the stored one's}
@@ -74,28 +79,38 @@ def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
                                                    dict(intr.sources)))
 
 
-def orientation_at_clicks(contexts: dict, best: LabellingFit, size_px: tuple[int, int], rule: ConfidenceRule,
+def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,
                           names_follow_clicks: bool) -> ClickOrientation:
-    """Register ``best`` (L*, already registered as stored) on each rival orientation (module docstring).
+    """Register every labelling of ``judged`` (the polarity check's registrations under the polarity used, as
+    stored) on each rival orientation; each orientation's score is its best (module docstring).
     ``contexts``: {orientation: FitContext} on that orientation of the X-ray (``oriented_context``);
     ``size_px``: (columns, rows) of the image as stored; ``names_follow_clicks``: the user named the clicks (module
-    docstring); ``rule``: the level confidence rule, whose landmark
-    limit says whether a rival's registration keeps the clicks fitted as well as the stored one's. A rival whose
-    clicks cannot be fitted within the rule's cap even by the landmarks alone is not refined: GC nan (on a
+    docstring); ``rule``: the level confidence rule, whose landmark limit says whether a rival's registration
+    keeps the clicks fitted as well as the stored one's. A labelling whose clicks cannot be fitted within the
+    rule's cap even by the landmarks alone is not refined; an orientation with none refined scores nan (on a
     correctly displayed image, a turn of 90 degrees lays the spine across the detector)."""
+    best = max(judged, key=lambda f: f.similarity)
     scores, mpde = {"as-stored": float(best.similarity)}, {"as-stored": float(best.mpde_mm)}
     for name, ctx in contexts.items():
-        uv = orient_uv(best.uv_px, name, size_px)
-        if not names_follow_clicks:  # L*'s names head to sacrum on the turned image, as a labelling is made
-            uv = uv[order_along_spine(uv)]
-        fit = fit_labelling(ctx, plan_labelling(ctx, best.labels, best.shift, best.points_lps_mm, uv),
-                            landmark_gate_mm=rule.max_landmark_mpde_mm)
-        scores[name] = float(fit.similarity)  # nan: the clicks cannot be fitted on it (not refined)
-        mpde[name] = float(fit.mpde_mm if fit.refined else fit.fine.mpde_mm)
+        fits = [_registered_turned(ctx, f, name, size_px, rule, names_follow_clicks) for f in judged]
+        refined = [f for f in fits if f.refined]
+        top = max(refined, key=lambda f: f.similarity) if refined else min(fits, key=lambda f: f.fine.mpde_mm)
+        scores[name] = float(top.similarity)  # nan: no labelling's clicks could be fitted on it
+        mpde[name] = float(top.mpde_mm if top.refined else top.fine.mpde_mm)
     limit = landmark_limit_mm(mpde["as-stored"], rule)
     fitted = {name: bool(name == "as-stored" or (np.isfinite(scores[name]) and m <= limit))
               for name, m in mpde.items()}
-    return ClickOrientation(list(best.labels), scores, mpde, fitted)
+    return ClickOrientation([list(f.labels) for f in judged], scores, mpde, fitted)
+
+
+def _registered_turned(ctx: FitContext, fit: LabellingFit, name: str, size_px: tuple[int, int],
+                       rule: ConfidenceRule, names_follow_clicks: bool) -> LabellingFit:
+    """``fit``'s labelling registered on orientation ``name`` of the image, its clicks turned with it."""
+    uv = orient_uv(fit.uv_px, name, size_px)
+    if not names_follow_clicks:  # the names head to sacrum on the turned image, as a labelling is made
+        uv = uv[order_along_spine(uv)]
+    return fit_labelling(ctx, plan_labelling(ctx, fit.labels, fit.shift, fit.points_lps_mm, uv),
+                         landmark_gate_mm=rule.max_landmark_mpde_mm)
 
 
 def oriented_context(ctx: FitContext, name: str, orient) -> FitContext:

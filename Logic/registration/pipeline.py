@@ -246,12 +246,11 @@ class CarmRegLogic:
         a, cp = state.appearance, state.click_polarity
         if cp is None or not a.clear or a.polarity not in cp.registered:
             return
-        best = max(cp.registered[a.polarity], key=lambda f: f.similarity)
         base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
         contexts = {o: oriented_context(base, o, ORIENTATIONS[o]) for o in rival_orientations(a.orientation_scores)}
         self._report("spatial", 0.95, "judging the display's orientation at the clicks")
-        evidence = orientation_at_clicks(contexts, best, state.xray.size_px, state.parameters.identify.rule,
-                                         names_follow_clicks=state.xray_landmarks.named)
+        evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
+                                         state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named)
         a.set_orientation_at_clicks(evidence.as_dict())
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,

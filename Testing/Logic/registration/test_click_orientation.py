@@ -86,6 +86,11 @@ def test_the_rule_at_the_clicks_each_part_deciding():
     assert (a.orientation, a.orientation_clear) == ("as-stored", False)  # its GC bought off the clicks: unclear
     a.set_orientation_at_clicks({"scores": base, "fitted": fitted})
     assert (a.orientation, a.orientation_clear) == ("as-stored", True)  # no rival could even fit the clicks
+    refused = _appearance()
+    refused.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.45})  # the database: mirrored
+    assert refused.orientation == "mirrored-left-right"
+    refused.set_orientation_at_clicks({"scores": {**base, "mirrored-left-right": 0.40}, "fitted": fitted})
+    assert (refused.orientation, refused.orientation_clear, refused.trusted) == ("as-stored", False, False)
 
 
 @pytest.fixture(scope="module")
@@ -104,12 +109,12 @@ def _judged(sample_ct, pixels, uv_px, labels, geometry, tmp_path_factory, rivals
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
     a = state.appearance
-    best = max(state.click_polarity.registered[a.polarity], key=lambda f: f.similarity)
     ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.xray_line_integral,
                      state.mask, 0.0, 0.0, p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm,
                      p.depth_step_mm)
     contexts = {o: oriented_context(ctx, o, ORIENTATIONS[o]) for o in rivals}
-    return orientation_at_clicks(contexts, best, xray.size_px, p.identify.rule, names_follow_clicks=True)
+    return orientation_at_clicks(contexts, state.click_polarity.registered[a.polarity], xray.size_px,
+                                 p.identify.rule, names_follow_clicks=True)
 
 
 @pytest.mark.slow
