@@ -36,7 +36,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
-from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, orient_uv
+from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, ORIENTATIONS, orient_uv
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
 from carmreg.logic.registration.labellings import order_along_spine
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
@@ -49,8 +49,8 @@ class ClickOrientation:
     """The orientation evidence at the clicks' poses."""
 
     labels: list            # the labellings registered in every orientation (the polarity check's)
-    scores: dict            # {orientation: GC of L* registered on that orientation of the image; nan: not}
-    mpde_mm: dict           # {orientation: the clicks' mPDE of that registration (of its landmark fit if none)}
+    scores: dict            # {orientation: best GC of those labellings registered on it; nan: none refined}
+    mpde_mm: dict           # {orientation: the clicks' mPDE of that best one (of the best landmark fit if none)}
     fitted: dict            # {orientation: mPDE within the level rule's limit against the stored one's}
 
     def as_dict(self) -> dict:
@@ -113,9 +113,10 @@ def _registered_turned(ctx: FitContext, fit: LabellingFit, name: str, size_px: t
                          landmark_gate_mm=rule.max_landmark_mpde_mm)
 
 
-def oriented_context(ctx: FitContext, name: str, orient) -> FitContext:
-    """``ctx`` on orientation ``name`` of its X-ray: ``orient(array)`` turns an image (``ORIENTATIONS[name]``);
-    the attenuation image, the field and the geometry are turned with it."""
+def oriented_context(ctx: FitContext, name: str) -> FitContext:
+    """``ctx`` on orientation ``name`` of its X-ray (``ORIENTATIONS``): the attenuation image, the field and the
+    geometry turned together."""
+    orient = ORIENTATIONS[name]
     return replace(ctx, geometry=oriented_geometry(ctx.geometry, name),
                    xray_line_integral=np.ascontiguousarray(orient(ctx.xray_line_integral)),
                    mask=np.ascontiguousarray(orient(ctx.mask)))

@@ -39,7 +39,6 @@ from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
     CLEAR_POLARITY_GC,
-    ORIENTATIONS,
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
@@ -247,7 +246,7 @@ class CarmRegLogic:
         if cp is None or not a.clear or a.polarity not in cp.registered:
             return
         base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
-        contexts = {o: oriented_context(base, o, ORIENTATIONS[o]) for o in rival_orientations(a.orientation_scores)}
+        contexts = {o: oriented_context(base, o) for o in rival_orientations(a.orientation_scores)}
         self._report("spatial", 0.95, "judging the display's orientation at the clicks")
         evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
                                          state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named)

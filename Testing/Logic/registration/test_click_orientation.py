@@ -112,7 +112,7 @@ def _judged(sample_ct, pixels, uv_px, labels, geometry, tmp_path_factory, rivals
     ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.xray_line_integral,
                      state.mask, 0.0, 0.0, p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm,
                      p.depth_step_mm)
-    contexts = {o: oriented_context(ctx, o, ORIENTATIONS[o]) for o in rivals}
+    contexts = {o: oriented_context(ctx, o) for o in rivals}
     return orientation_at_clicks(contexts, state.click_polarity.registered[a.polarity], xray.size_px,
                                  p.identify.rule, names_follow_clicks=True)
 
