@@ -87,9 +87,14 @@ def to_uint8(image: np.ndarray, mask: np.ndarray | None = None, percentiles=(0.5
 
 
 
+PNG_COMPRESS_LEVEL = 1
+"""zlib level of the PNGs written (measured on a 960 px overlay: 0.08 s and 670 kB, against 0.24 s and 560 kB at
+PIL's default 6)."""
+
+
 def save_png(path: str | Path, image: Image.Image | np.ndarray) -> Path:
     img = image if isinstance(image, Image.Image) else Image.fromarray(image)
-    return atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
+    return atomic_write(path, lambda tmp: img.save(tmp, format="PNG", compress_level=PNG_COMPRESS_LEVEL))
 
 
 def detector_ijk_to_lps(geometry, pose) -> np.ndarray:
@@ -138,19 +143,27 @@ def write_drr_nrrd(path: str | Path, line_integral: np.ndarray, geometry, pose) 
                                "axis 2 = one slice on the detector plane")
 
 
+def _figure(size_inches: tuple[float, float]):
+    """A matplotlib Figure on an Agg canvas (no pyplot: no global figure to close, no GUI backend)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size_inches)
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def _figure_bytes(fig) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight",
+                pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     return buf.getvalue()
 
 
 def convergence_figure(result) -> bytes:
     """mPDE over evaluations and the pose parameters' trajectory (paper Fig. 9-10)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig = _figure((10, 3.6))
+    a, b = fig.subplots(1, 2)
     if result.convergence:
         ev, m, _ = np.array(result.convergence).T
         a.semilogy(ev, np.maximum(m, 1e-3), color="tab:blue")
@@ -164,29 +177,22 @@ def convergence_figure(result) -> bytes:
             b.plot(ev, poses[:, k] - final[k], label=names[k])
         b.legend(fontsize=7, ncol=2)
     b.set(xlabel="evaluations", ylabel="mean - final", title="Fine stage: parameters")
-    data = _figure_bytes(fig)
-    plt.close(fig)
-    return data
+    return _figure_bytes(fig)
 
 
 def similarity_figure(result) -> bytes:
     """One panel per metric: similarity over (ty, tz), the chosen metric's best marked (paper Fig. 6)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     maps = result.similarity_maps
     ty, tz = np.array(result.database_grid.get("ty_mm", [0])), np.array(result.database_grid.get("tz_mm", [0]))
-    fig, axes = plt.subplots(1, max(1, len(maps)), figsize=(2.6 * max(1, len(maps)), 3.4), squeeze=False)
+    fig = _figure((2.6 * max(1, len(maps)), 3.4))
+    axes = fig.subplots(1, max(1, len(maps)), squeeze=False)
     for ax, (name, m) in zip(axes[0], maps.items(), strict=False):
         ax.imshow(m.T, origin="lower", aspect="auto", extent=[ty[0], ty[-1], tz[0], tz[-1]], cmap="viridis")
         iy, iz = np.unravel_index(int(np.argmax(m)), m.shape)
         ax.plot(ty[iy], tz[iz], "r+", ms=10)
         ax.set(title=name.upper(), xlabel="ty mm")
     axes[0][0].set_ylabel("tz mm")
-    data = _figure_bytes(fig)
-    plt.close(fig)
-    return data
+    return _figure_bytes(fig)
 
 
 RESULT_FILES = ("result.json", "overlay.png", "drr.png", "drr.nrrd", "carm.tfm", "convergence.png",
@@ -235,5 +241,5 @@ def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dic
     paths["report"] = write_report_pdf(out / "report.pdf", result, xray_pixels, clicked)
     if ct is not None and ct_landmarks is not None:
         from carmreg.logic.report.slicer_scene import write_slicer_scene
-        paths.update(write_slicer_scene(out, result, ct, ct_landmarks, xray_pixels, clicked))
+        paths.update(write_slicer_scene(out, result, ct, ct_landmarks, xray_pixels, clicked, paths.get("drr_nrrd")))
     return paths

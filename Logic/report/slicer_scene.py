@@ -31,13 +31,14 @@ tests read it with Slicer's own scene loader (``slicer-core``).
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
-from carmreg.logic.io.atomic import atomic_write_text
+from carmreg.logic.io.atomic import atomic_write, atomic_write_text
 from carmreg.logic.io.landmarks import write_landmarks_3d, write_markups_lps
 from carmreg.logic.io.nrrd_volume import write_volume_nrrd
 from carmreg.logic.io.transforms import write_tfm
@@ -72,8 +73,9 @@ def _clicks(result, clicked: dict | None) -> dict:
 
 
 def write_scene_files(folder: Path, result, ct, ct_landmarks, xray_pixels: np.ndarray,
-                      clicked: dict | None) -> dict[str, Path]:
-    """Every data file of the scene into ``folder`` (atomic writes); returns {key: path}."""
+                      clicked: dict | None, drr_nrrd: Path | None = None) -> dict[str, Path]:
+    """Every data file of the scene into ``folder`` (atomic writes); returns {key: path}. ``drr_nrrd``: the
+    result's DRR already written by ``write_drr_nrrd`` (copied, not encoded again)."""
     pixels = np.asarray(xray_pixels)
     pixel_type = pixels.dtype if pixels.dtype.kind in "iu" else np.float32
     clicks = _clicks(result, clicked)
@@ -95,7 +97,9 @@ def write_scene_files(folder: Path, result, ct, ct_landmarks, xray_pixels: np.nd
         "carm": write_tfm(folder / "carm.tfm", lps_to_camera_matrix(result),
                           comment="lps_to_camera: CT LPS mm -> C-arm camera mm (origin at the X-ray source)"),
     }
-    if result.drr_line_integral is not None:
+    if drr_nrrd is not None:
+        files["drr"] = atomic_write(folder / "drr.nrrd", lambda tmp: shutil.copyfile(drr_nrrd, tmp))
+    elif result.drr_line_integral is not None:
         files["drr"] = write_drr_nrrd(folder / "drr.nrrd", result.drr_line_integral, result.geometry, result.pose)
     return files
 
@@ -171,15 +175,15 @@ def scene_xml(result, ct, files: dict[str, Path]) -> str:
 
 
 def write_slicer_scene(out_dir: str | Path, result, ct, ct_landmarks, xray_pixels: np.ndarray,
-                       clicked: dict | None = None) -> dict[str, Path]:
+                       clicked: dict | None = None, drr_nrrd: Path | None = None) -> dict[str, Path]:
     """Write ``out_dir/slicer/CarmReg.mrml`` and its files; returns {"slicer_scene": mrml path, key: path}.
 
     ct: the registered CT (``Volume``, HU, ``ijk_to_lps``); ct_landmarks: its ``Landmarks3D``; xray_pixels:
     the X-ray ``[row, column]`` as stored; clicked: {label: (u, v) px} of the clicks (default: the result's
-    paired clicks).
+    paired clicks); drr_nrrd: the result's ``drr.nrrd`` when already written (copied into the scene).
     """
     folder = Path(out_dir) / SCENE_FOLDER
     folder.mkdir(parents=True, exist_ok=True)
-    files = write_scene_files(folder, result, ct, ct_landmarks, xray_pixels, clicked)
+    files = write_scene_files(folder, result, ct, ct_landmarks, xray_pixels, clicked, drr_nrrd)
     scene = atomic_write_text(folder / SCENE_FILE, scene_xml(result, ct, files))
     return {"slicer_scene": scene, **{f"slicer_{key}": path for key, path in files.items()}}

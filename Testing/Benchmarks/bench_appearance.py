@@ -260,8 +260,9 @@ def summarize(rows: list[dict], which: str = "report") -> str:
     modes = [m for m in MODES if any(r["mode"] == m for r in sel)]
     lines = [f"**{which} half**: {len(cases)} cases ({', '.join(f'{k} {v}' for k, v in by_ct.items())}), "
              f"{len(variants)} variants, modes {', '.join(modes)}; {len(sel)} runs of `carmreg register`.", ""]
-    lines += ["| variant | mode | n | answer right | CONFIDENT and wrong | ambiguous | contradicted | refused / "
-              "failed | polarity right | s per run, median (max) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| variant | mode | n | answer right | CONFIDENT (no clicks: proposed) and wrong | ambiguous | "
+              "contradicted | refused / failed | polarity right | s per run, median (max) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for v in variants:
         for m in modes:
             runs = [r for r in sel if r["variant"] == v and r["mode"] == m]
@@ -275,8 +276,8 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                  f"{sum(r['status'] == s and not r['answer_right'] for r in runs)}" for s in STATUSES]
         bad = sum(r["status"] in ("refused", "failed") for r in runs)
         lines.append(f"| {v} | " + " | ".join(cells) + f" | {bad} |")
-    lines += ["", "Per CT (all variants): unnamed clicks named right; CONFIDENT and wrong in any mode.", "",
-              "| CT | unnamed right | CONFIDENT and wrong |", "|---|---|---|"]
+    lines += ["", "Per CT (all variants): unnamed clicks named right; CONFIDENT (no clicks: proposed) and wrong in "
+              "any mode.", "", "| CT | unnamed right | CONFIDENT (no clicks: proposed) and wrong |", "|---|---|---|"]
     for ct in by_ct:
         unnamed = [r for r in sel if r["ct"] == ct and r["mode"] == "unnamed"]
         bad = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in sel if r["ct"] == ct)
