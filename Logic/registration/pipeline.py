@@ -38,13 +38,11 @@ from carmreg.logic.geometry.camera import CarmPose, nominal_geometry
 from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import (
-    CLEAR_POLARITY_GC,
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
     better_storage,
     decide_polarity,
-    image_polarity,
     orientation_scores,
     polarity_scores,
     storage_gc,
@@ -198,9 +196,9 @@ class CarmRegLogic:
         fits = None
         if state.click_polarity is not None:
             refined, refined_by, fits = state.click_polarity.scores, REFINED_AT_CLICKS, state.click_polarity.fits
-        elif p.polarity == "auto" and image_polarity(scores)[1] < CLEAR_POLARITY_GC:
+        elif p.polarity == "auto":
             self._report("spatial", 0.3, "telling bone-dark from bone-bright")
-            refined = self._refined_polarity_scores(state, scores)
+            refined = self._refined_polarity_scores(state, scores, better_storage(gc_by_storage))
         state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
                                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
                                                refined_by=refined_by, fits=fits)
@@ -228,9 +226,8 @@ class CarmRegLogic:
         dark_storage = better_storage(gc_by_storage)
         contexts = {}
         for polarity in POLARITIES:
-            dark = polarity == "bone-dark"
-            line = attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
-            contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
+            contexts[polarity] = self._fit_context(state, self._polarity_image(state, polarity, dark_storage),
+                                                   0.0, 0.0)
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
 
         def progress(done: int, total: int) -> None:
@@ -238,6 +235,13 @@ class CarmRegLogic:
                          f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
 
         return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
+
+    @staticmethod
+    def _polarity_image(state: RegistrationState, polarity: str, dark_storage: str) -> np.ndarray:
+        """The X-ray's attenuation image if it were ``polarity``: bone dark converted with ``dark_storage``,
+        bone bright as a log display (the only storage that shows bone bright)."""
+        dark = polarity == "bone-dark"
+        return attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
 
     def _orientation_at_clicks(self, state: RegistrationState) -> None:
         """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
@@ -260,9 +264,10 @@ class CarmRegLogic:
                           state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
                           p.depth_far_mm, p.depth_step_mm, self._check_cancel, on_labelling)
 
-    def _refined_polarity_scores(self, state: RegistrationState, scores: dict) -> dict:
-        """The tie-break of an unclear polarity: each polarity's best database pose refined on the image alone
-        (the levels stage's coarse refinement, no clicks); its final GC is that polarity's score."""
+    def _refined_polarity_scores(self, state: RegistrationState, scores: dict, dark_storage: str) -> dict:
+        """The polarity's evidence without clicks: each polarity's best database pose refined on the image alone
+        (the levels stage's coarse refinement, no clicks); its final GC is that polarity's score. The bone-dark
+        image is converted with ``dark_storage`` (its better-agreeing storage), as at the clicks."""
         p, db = state.parameters, state.database
         level = state.pyramid.level(p.refine_coarse.mu_spacing_mm)
         nz = len(db.tz_mm)
@@ -270,7 +275,7 @@ class CarmRegLogic:
         for polarity in POLARITIES:
             iy, iz = divmod(scores["best_index"][polarity], nz)
             start = np.array([db.tx_mm, db.ty_mm[iy], db.tz_mm[iz], 0.0, 0.0, 0.0])
-            line = attenuation(state.xray.pixels, state.mask, polarity == "bone-dark")
+            line = self._polarity_image(state, polarity, dark_storage)
             r = intensity_refine(level, state.geometry, start, line, state.mask, np.zeros((0, 3)), np.zeros((0, 2)),
                                  p.refine_coarse, should_stop=self._check_cancel)
             out[polarity] = float(r.similarity_end)

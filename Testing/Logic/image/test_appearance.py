@@ -171,8 +171,11 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
     pixels = sim.pixels.astype(np.float64)
     dark = XrayImage(pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, False, "dark")  # header wrong
     a = _appearance(sample_ct, dark, tmp_path_factory)
-    assert (a.polarity, a.decided_by, a.clear, a.orientation) == ("bone-dark", "image", True, "as-stored")
+    assert (a.polarity, a.decided_by, a.clear, a.orientation) == ("bone-dark", "image (refined)", True, "as-stored")
     assert a.header_polarity == "bone-bright" and a.clarity_gc >= 0.05
+    # refined with the storage the image agrees with (a log display): measured 0.77 against 0.36; converted as
+    # linear intensity, the right polarity's refined GC fell to 0.28 and the wrong one won
+    assert a.storage == "log-display" and a.scores["refined"]["bone-dark"] > 0.6
 
     bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
     assert bright.bone_dark  # what a PNG "says": nothing, so the old default
