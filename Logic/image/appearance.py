@@ -29,8 +29,8 @@ with ``refined=``, recorded as the evidence, ``decided_by`` naming where):
 - **without clicks** (or too few to place the CT): each polarity's best DRR pose refined on the image alone, the
   bone-dark image converted with its better storage (``REFINED_AT_DATABASE_POSES``); score = the refined GC,
   clear at ``CLEAR_REFINED_GC``. Always, not only on a close call: the database's verdict was clear and wrong on
-  the second CT's intensifier images (tune half without clicks: polarity right 16 of 20 refined, against the
-  database's 10 of 20 answers right).
+  the second CT's intensifier images (its tune half without clicks: every level named right in 16 of 20 runs,
+  against 10 of 20 with the database's verdict; on its report half the refinement does not fix them either).
 
 A file that *states* its polarity (DICOM PixelIntensityRelationshipSign, ``header_explicit``) is evidence too. When
 the image agrees, the polarity is clear whatever the gap. When the image disagrees, the two are in conflict: the
