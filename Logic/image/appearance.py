@@ -26,11 +26,10 @@ with ``refined=``, recorded as the evidence, ``decided_by`` naming where):
   when it leads by ``CLEAR_CLICKS_GC``, reaches ``MIN_CLICKS_GC`` and keeps the clicks fitted. The two GC
   thresholds were chosen on the tune half of the appearance benchmark (first measurement: wrong verdicts led by
   at most 0.147 - all on linear flat-panel images whose field was then mis-found - and reached at most 0.27);
-- **without clicks** (or too few to place the CT): each polarity's best DRR pose refined on the image alone, the
-  bone-dark image converted with its better storage (``REFINED_AT_DATABASE_POSES``); score = the refined GC,
-  clear at ``CLEAR_REFINED_GC``. Always, not only on a close call: the database's verdict was clear and wrong on
-  the second CT's intensifier images (its tune half without clicks: every level named right in 16 of 20 runs,
-  against 10 of 20 with the database's verdict; on its report half the refinement does not fix them either).
+- **without clicks** (or too few to place the CT): each polarity's best spatial-map peaks refined on the image
+  alone, the bone-dark image converted with its better storage (``REFINED_AT_DATABASE_POSES``,
+  ``registration.image_polarity``); score = the best refined GC, clear at ``CLEAR_REFINED_GC``. Always, not only
+  on a close call: the database's verdict was clear and wrong on the second CT's intensifier images.
 
 A file that *states* its polarity (DICOM PixelIntensityRelationshipSign, ``header_explicit``) is evidence too. When
 the image agrees, the polarity is clear whatever the gap. When the image disagrees, the two are in conflict: the
@@ -100,7 +99,7 @@ CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores called clear (eviden
 CLEAR_REFINED_GC = 0.05     # GC gap of the refined scores (no clicks) called clear
 CLEAR_CLICKS_GC = 0.10      # at the clicks' poses: the GC gap called clear (tune half of the appearance benchmark)
 MIN_CLICKS_GC = 0.30        # ... and the winner's GC must reach this (ditto)
-REFINED_AT_DATABASE_POSES = "refined"            # each polarity's best database pose refined on the image
+REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called

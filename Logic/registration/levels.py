@@ -34,6 +34,7 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.registration.image_polarity import unlabelled_fit
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
@@ -252,20 +253,31 @@ def _level_step(ct: Landmarks3D, label: str, step: int) -> np.ndarray | None:
     return m[names[j]] - m[label]
 
 
+def peak_starts(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, tx_mm: float, count: int
+                ) -> list[np.ndarray]:
+    """(6,) start poses at the ``count`` best peaks of a spatial map (``spatial_peaks``), no rotation."""
+    return [np.array([tx_mm, ty, tz, 0.0, 0.0, 0.0]) for ty, tz in spatial_peaks(score_map, ty_mm, tz_mm, count)]
+
+
 def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray, ty_mm: np.ndarray,
                         tz_mm: np.ndarray, tx_mm: float, params: IdentifyParameters | None = None,
-                        appearance_clear: bool = True) -> LevelIdentification:
+                        appearance_clear: bool = True, registered: list | tuple = ()) -> LevelIdentification:
     """No clicks: refine from the best peaks of the spatial map on the image alone, then challenge the winner
     with its pose moved one level up and down along the spine (the look-alike neighbours); decide as above.
-    A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py)."""
+    A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py).
+    ``registered``: (start, fit) already refined on this very image (the polarity check without clicks,
+    ``image_polarity``); a peak with the same start takes a copy of that fit instead of refining again."""
     p = params or IdentifyParameters()
 
     def fit(start: np.ndarray, shift: int) -> LabellingFit:  # no clicks: no landmark term
-        return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start)
+        return unlabelled_fit(ctx, start, shift)
 
-    starts = [np.array([tx_mm, ty, tz, 0.0, 0.0, 0.0]) for ty, tz in
-              spatial_peaks(score_map, ty_mm, tz_mm, p.image_starts)]
-    hypotheses = [fit(s, 0) for s in starts]
+    def reused(start: np.ndarray) -> LabellingFit | None:
+        done = next((f for s, f in registered if np.array_equal(s, start) and f.refined), None)
+        return None if done is None else dataclasses.replace(done, labels=list(done.labels), runs=list(done.runs))
+
+    starts = peak_starts(score_map, ty_mm, tz_mm, tx_mm, p.image_starts)
+    hypotheses = [reused(s) or fit(s, 0) for s in starts]
     challenged: set[str] = set()
     while True:  # challenge the best with its pose one level up and down, until the best has been challenged
         best = min(hypotheses, key=lambda h: h.score)

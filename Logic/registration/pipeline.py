@@ -57,6 +57,7 @@ from carmreg.logic.registration.click_polarity import ClickPolarity, polarity_at
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
+from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
 from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.labelling_fit import FitContext
 from carmreg.logic.registration.labellings import ct_level_names
@@ -64,6 +65,7 @@ from carmreg.logic.registration.levels import (
     IdentifyParameters,
     identify_from_image,
     identify_levels,
+    peak_starts,
     plan_contest,
 )
 from carmreg.logic.registration.outcome import build_result
@@ -197,13 +199,15 @@ class CarmRegLogic:
         if state.click_polarity is not None:
             refined, refined_by, fits = state.click_polarity.scores, REFINED_AT_CLICKS, state.click_polarity.fits
         elif p.polarity == "auto":
-            self._report("spatial", 0.3, "telling bone-dark from bone-bright")
-            refined = self._refined_polarity_scores(state, scores, better_storage(gc_by_storage))
+            state.image_polarity = self._polarity_from_image(state, gc_by_storage)
+            refined = state.image_polarity.scores
         state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
                                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
                                                refined_by=refined_by, fits=fits)
         if state.click_polarity is not None:
             a.scores["at_clicks"] = state.click_polarity.as_dict()
+        if state.image_polarity is not None:
+            a.scores["without_clicks"] = state.image_polarity.as_dict()
         a.set_storage(gc_by_storage)
         state.known_gc = gc_by_storage[a.storage] if a.bone_dark else None  # the spatial stage's GC map
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
@@ -264,22 +268,28 @@ class CarmRegLogic:
                           state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
                           p.depth_far_mm, p.depth_step_mm, self._check_cancel, on_labelling)
 
-    def _refined_polarity_scores(self, state: RegistrationState, scores: dict, dark_storage: str) -> dict:
-        """The polarity's evidence without clicks: each polarity's best database pose refined on the image alone
-        (the levels stage's coarse refinement, no clicks); its final GC is that polarity's score. The bone-dark
-        image is converted with ``dark_storage`` (its better-agreeing storage), as at the clicks."""
+    def _polarity_from_image(self, state: RegistrationState, gc_by_storage: dict) -> ImagePolarity:
+        """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``), the
+        starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage."""
         p, db = state.parameters, state.database
-        level = state.pyramid.level(p.refine_coarse.mu_spacing_mm)
-        nz = len(db.tz_mm)
-        out = {}
+        dark_storage = better_storage(gc_by_storage)
+        rows, cols = db.drrs.shape[2:]
+        mask_coarse = bin_mask(state.mask, state.coarse_factor)[:rows, :cols]
+        contexts, starts = {}, {}
         for polarity in POLARITIES:
-            iy, iz = divmod(scores["best_index"][polarity], nz)
-            start = np.array([db.tx_mm, db.ty_mm[iy], db.tz_mm[iz], 0.0, 0.0, 0.0])
             line = self._polarity_image(state, polarity, dark_storage)
-            r = intensity_refine(level, state.geometry, start, line, state.mask, np.zeros((0, 3)), np.zeros((0, 2)),
-                                 p.refine_coarse, should_stop=self._check_cancel)
-            out[polarity] = float(r.similarity_end)
-        return out
+            known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
+            spatial = spatial_search(db, bin_image(line, state.coarse_factor)[:rows, :cols], mask_coarse, p.metric,
+                                     (p.metric,), known=known)
+            starts[polarity] = peak_starts(spatial.maps[p.metric], db.ty_mm, db.tz_mm, db.tx_mm,
+                                           p.identify.image_starts)
+            contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
+                         f"telling bone-dark from bone-bright ({done + 1} of {total})")
+
+        return polarity_from_image(contexts, starts, progress)
 
     def _spatial(self, state: RegistrationState) -> dict:
         appearance = self._decide_appearance(state)
@@ -337,9 +347,10 @@ class CarmRegLogic:
                                                          len(ct_level_names(state.ct_landmarks)), p.identify))
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
+            reuse = state.image_polarity.pairs(state.appearance.polarity) if state.image_polarity else ()
             ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
                                         state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        p.identify, appearance_clear)
+                                        p.identify, appearance_clear, registered=reuse)
         else:
             ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
                                     registered=self._registered_at_clicks(state))

@@ -23,6 +23,7 @@ from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.database import DrrDatabase
 from carmreg.logic.registration.depth import DepthResult
 from carmreg.logic.registration.fine import FineParameters, FineResult
+from carmreg.logic.registration.image_polarity import ImagePolarity
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit, coarse_refine_parameters
 from carmreg.logic.registration.level_check import LevelCheck
@@ -96,6 +97,7 @@ class RegistrationState:
     appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
     known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
     click_polarity: ClickPolarity | None = None  # the polarity check's registrations at the clicks (spatial stage)
+    image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
@@ -149,9 +151,9 @@ class RegistrationResult:
 def drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
-    fields = {"database": ("database",), "spatial": ("spatial", "click_polarity"), "depth": ("depth",),
-              "fine": ("fine",), "refine": ("refine", "refined_pose"), "levels": ("identification",),
-              "final_drr": ("drr_line_integral",)}
+    fields = {"database": ("database",), "spatial": ("spatial", "click_polarity", "image_polarity"),
+              "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose"),
+              "levels": ("identification",), "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:
             setattr(state, attribute, None)

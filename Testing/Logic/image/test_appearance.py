@@ -193,6 +193,31 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
 
 
 @pytest.mark.slow
+def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_levels_stage_reuses_them(
+        sample_ct, case, tmp_path, tmp_path_factory):
+    """A bone-bright PNG without clicks: each polarity's spatial-map peaks are refined on the image, bone bright
+    wins clearly, and the no-click level answer starts from those refinements instead of computing them again."""
+    ct, _, centroids = sample_ct
+    sim, geometry = case
+    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
+    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, bright, Landmarks2D([], np.zeros((0, 2))), params)
+    for stage in ("database", "spatial", "levels"):
+        logic.run_stage(state, stage)
+    a, evidence = state.appearance, state.image_polarity
+    assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (refined)", True)
+    assert evidence.scores["bone-bright"] >= evidence.scores["bone-dark"] + 0.05
+    assert a.scores["without_clicks"]["starts"]["bone-bright"] == [list(s) for s in evidence.starts["bone-bright"]]
+    assert len(evidence.registered["bone-bright"]) == params.identify.image_starts
+
+    hypotheses = state.identification.fits  # one per level named; a reused one holds the very refinement
+    assert sum(any(h.refine is g.refine for g in evidence.registered["bone-bright"]) for h in hypotheses) >= 2
+    assert not any(h.refine is g.refine for h in hypotheses for g in evidence.registered["bone-dark"])
+    assert all(g.labels == [] for g in evidence.registered["bone-bright"])  # the answer named copies
+
+
+@pytest.mark.slow
 def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
         sample_ct, case, tmp_path, tmp_path_factory):
     """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
