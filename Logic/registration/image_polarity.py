@@ -35,6 +35,7 @@ class ImagePolarity:
     scores: dict            # {polarity: max refined GC over its starts}
     starts: dict            # {polarity: [(6,) start pose]}
     registered: dict        # {polarity: [LabellingFit refined from the start of the same index]}
+    maps: dict              # {polarity: (ny, nz) spatial map the starts are the peaks of}
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores),
@@ -51,10 +52,10 @@ def unlabelled_fit(ctx: FitContext, start: np.ndarray, shift: int = 0) -> Labell
     return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start)
 
 
-def polarity_from_image(contexts: dict, starts: dict, progress=None) -> ImagePolarity:
+def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None) -> ImagePolarity:
     """Refine every start of every polarity (module docstring). ``contexts``: {polarity: FitContext} whose image is
-    the X-ray converted as that polarity; ``starts``: {polarity: [(6,) pose]}; ``progress(done, total)`` is called
-    before each refinement."""
+    the X-ray converted as that polarity; ``starts``: {polarity: [(6,) pose]}, the peaks of ``maps`` (kept for the
+    spatial stage); ``progress(done, total)`` is called before each refinement."""
     total = sum(len(s) for s in starts.values())
     registered, done = {}, 0
     for polarity, ctx in contexts.items():
@@ -65,4 +66,4 @@ def polarity_from_image(contexts: dict, starts: dict, progress=None) -> ImagePol
             registered[polarity].append(unlabelled_fit(ctx, start))
             done += 1
     scores = {p: max((f.similarity for f in fits), default=float("nan")) for p, fits in registered.items()}
-    return ImagePolarity(scores, {p: list(s) for p, s in starts.items()}, registered)
+    return ImagePolarity(scores, {p: list(s) for p, s in starts.items()}, registered, dict(maps))

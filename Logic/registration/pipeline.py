@@ -209,7 +209,7 @@ class CarmRegLogic:
         if state.image_polarity is not None:
             a.scores["without_clicks"] = state.image_polarity.as_dict()
         a.set_storage(gc_by_storage)
-        state.known_gc = gc_by_storage[a.storage] if a.bone_dark else None  # the spatial stage's GC map
+        state.known_gc = self._known_gc(state, gc_by_storage)
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
@@ -239,6 +239,17 @@ class CarmRegLogic:
                          f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
 
         return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
+
+    @staticmethod
+    def _known_gc(state: RegistrationState, gc_by_storage: dict) -> np.ndarray | None:
+        """The spatial stage's GC map when already computed: the chosen bone-dark conversion's (``storage_gc``),
+        or the chosen polarity's map of the check without clicks."""
+        a, checked = state.appearance, state.image_polarity
+        if a.bone_dark:
+            return gc_by_storage[a.storage]
+        if checked is not None and state.parameters.metric == "gc":
+            return checked.maps[a.polarity].reshape(-1)
+        return None
 
     @staticmethod
     def _polarity_image(state: RegistrationState, polarity: str, dark_storage: str) -> np.ndarray:
@@ -275,21 +286,20 @@ class CarmRegLogic:
         dark_storage = better_storage(gc_by_storage)
         rows, cols = db.drrs.shape[2:]
         mask_coarse = bin_mask(state.mask, state.coarse_factor)[:rows, :cols]
-        contexts, starts = {}, {}
+        contexts, starts, maps = {}, {}, {}
         for polarity in POLARITIES:
             line = self._polarity_image(state, polarity, dark_storage)
             known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
-            spatial = spatial_search(db, bin_image(line, state.coarse_factor)[:rows, :cols], mask_coarse, p.metric,
-                                     (p.metric,), known=known)
-            starts[polarity] = peak_starts(spatial.maps[p.metric], db.ty_mm, db.tz_mm, db.tx_mm,
-                                           p.identify.image_starts)
+            maps[polarity] = spatial_search(db, bin_image(line, state.coarse_factor)[:rows, :cols], mask_coarse,
+                                            p.metric, (p.metric,), known=known).maps[p.metric]
+            starts[polarity] = peak_starts(maps[polarity], db.ty_mm, db.tz_mm, db.tx_mm, p.identify.image_starts)
             contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
 
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
                          f"telling bone-dark from bone-bright ({done + 1} of {total})")
 
-        return polarity_from_image(contexts, starts, progress)
+        return polarity_from_image(contexts, starts, maps, progress)
 
     def _spatial(self, state: RegistrationState) -> dict:
         appearance = self._decide_appearance(state)

@@ -95,7 +95,7 @@ class RegistrationState:
     refined_pose: np.ndarray | None = None
     identification: LevelIdentification | None = None
     appearance: Appearance | None = None    # polarity and storage: the header's until the spatial stage decides
-    known_gc: np.ndarray | None = None      # GC of the chosen bone-dark conversion with every DRR (spatial stage)
+    known_gc: np.ndarray | None = None      # GC of the chosen conversion with every DRR, if already computed
     click_polarity: ClickPolarity | None = None  # the polarity check's registrations at the clicks (spatial stage)
     image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None

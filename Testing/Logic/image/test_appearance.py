@@ -10,9 +10,11 @@ from simulated_cases import simulated_ap_case
 
 from carmreg.logic.image.appearance import decide_polarity, rank_image
 from carmreg.logic.image.field import field_mask
+from carmreg.logic.image.prepare import bin_image, bin_mask
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
+from carmreg.logic.registration.spatial import spatial_search
 
 
 def test_rank_image_is_the_same_for_any_increasing_storage():
@@ -210,6 +212,11 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
     assert evidence.scores["bone-bright"] >= evidence.scores["bone-dark"] + 0.05
     assert a.scores["without_clicks"]["starts"]["bone-bright"] == [list(s) for s in evidence.starts["bone-bright"]]
     assert len(evidence.registered["bone-bright"]) == params.identify.image_starts
+    # the spatial stage took the check's map of the chosen polarity; computed afresh it is the same
+    rows, cols = state.database.drrs.shape[2:]
+    fresh = spatial_search(state.database, bin_image(state.xray_line_integral, state.coarse_factor)[:rows, :cols],
+                           bin_mask(state.mask, state.coarse_factor)[:rows, :cols], "gc", ("gc",))
+    np.testing.assert_allclose(state.spatial.maps["gc"], fresh.maps["gc"], atol=1e-6)
 
     hypotheses = state.identification.fits  # one per level named; a reused one holds the very refinement
     assert sum(any(h.refine is g.refine for g in evidence.registered["bone-bright"]) for h in hypotheses) >= 2
