@@ -9,6 +9,8 @@ SCRIPT = textwrap.dedent("""
     import signal, sys, time
     from carmreg import signals
 
+    # Ctrl-C as in a terminal: a job started in the background (CI, nohup) inherits SIGINT ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signals.install()
 
     class Finalised:
