@@ -13,10 +13,15 @@ with the ``candidates`` labellings whose click spacing implies a source depth ne
 (intervertebral distances grow from head to sacrum, so far-off labellings need an implausible magnification);
 named clicks start with the names and their neighbours one level up and down. Then, until it holds, both
 neighbours of the best registered labelling are registered too: the winner has always beaten the look-alike
-labellings next to it. Short refinements did NOT rank labellings reliably (the right one often ranked last after
-160 evaluations and first after 800). Finally the leading two are each refitted from the other's refined pose
-(a second, independent start; each keeps its better refinement), so neither loses to a local optimum of its
-optimiser; if the lead changes hands, the answer is not stable (``level_confidence``).
+labellings next to it. When, for unnamed clicks, the best of them still explains the image poorly (image
+agreement under the confidence rule's floor, or its clicks fitted beyond the cap), every other labelling is
+registered too: the
+click spacing can make the true labelling one of the least plausible (seen: a chest case whose true T10-T12 was
+the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT rank labellings reliably
+(the right one often ranked last after 160 evaluations and first after 800). Finally the leading two are each
+refitted from the other's refined pose (a second, independent start; each keeps its better refinement), so neither
+loses to a local optimum of its optimiser; if the lead changes hands, the answer is not stable
+(``level_confidence``).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks on the image alone and challenges the
 best with its pose moved one level up and down; the answer is only ever **proposed**.
@@ -49,7 +54,14 @@ from carmreg.logic.registration.labellings import (
     order_along_spine,
 )
 from carmreg.logic.registration.level_check import LevelCheck
-from carmreg.logic.registration.level_confidence import ConfidenceRule, Verdict, decide, decide_image_only
+from carmreg.logic.registration.level_confidence import (
+    ConfidenceRule,
+    Evidence,
+    Verdict,
+    check_results,
+    decide,
+    decide_image_only,
+)
 
 
 @dataclass
@@ -133,6 +145,13 @@ def _contest(ctx: FitContext, fits: list[LabellingFit], first: list[int]) -> Non
             register(j)
 
 
+def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
+    """The labelling passes the confidence rule's absolute checks on its own: image agreement at the floor, clicks
+    fitted within the cap (``level_confidence.check_results`` without a rival)."""
+    checks, _ = check_results(Evidence.of(fit, None, True, True), rule)
+    return checks["image_agreement"]["ok"] and checks.get("landmark_fit", {"ok": True})["ok"]
+
+
 def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     """Refit the leading two from each other's refined pose; True when the same labelling still leads."""
     ranked = sorted((f for f in fits if f.refined), key=lambda f: f.score)
@@ -192,6 +211,9 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
             if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
                 fits[i] = dataclasses.replace(done, runs=list(done.runs))
     _contest(ctx, fits, plan.first)
+    best = min((f for f in fits if f.refined), key=lambda f: f.score)
+    if plan.given_index is None and not _explains_the_image(best, p.rule):
+        _contest(ctx, fits, list(range(len(fits))))  # unnamed, the most plausible explain it poorly: every one
     stable = True
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits)

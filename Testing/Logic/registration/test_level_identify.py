@@ -158,6 +158,43 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
     assert judge(0.015, Evidence.from_checks(v.checks), ConfidenceRule(margin=0.01))[0] == "confident"
 
 
+def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11) -> list:
+    """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
+    0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
+    indices registered, in order. The contest's control flow is the product's own."""
+    import carmreg.logic.registration.levels as levels
+
+    fits = [LabellingFit([f"X{i}"], i, np.zeros((1, 3)), np.zeros((1, 2))) for i in range(n)]
+    order = []
+
+    def register(ctx, fit, start_pose=None):
+        i = fits.index(fit)
+        if fit.refine is None:
+            order.append(i)
+        good = i == truth
+        fit.refine = RefineResult(np.zeros(6), 0.0, 0.70 if good else gc_of_the_others, 1.0, 1,
+                                  objective_end=(0.30 if good else 0.70) + 0.001 * i)
+        return fit
+
+    plan = levels.ContestPlan("unnamed", fits, list(first), None, [0], np.array([0]))
+    monkeypatch.setattr(levels, "plan_contest", lambda *a, **k: plan)
+    monkeypatch.setattr(levels, "fit_labelling", register)
+    monkeypatch.setattr(levels, "refit_from", register)
+    ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))))
+    return order, ident
+
+
+def test_when_the_most_plausible_labellings_explain_the_image_poorly_every_labelling_is_registered(monkeypatch):
+    """The chest case where the true labelling was the 10th most plausible of 11: the five planned first and their
+    neighbours all agree poorly with the image (GC 0.30 < 0.40), so the rest are registered and the truth wins."""
+    order, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5])
+    assert sorted(order) == list(range(11)) and ident.winner.labels == ["X9"]
+    assert ident.status == "confident"
+    # when they explain it well (GC 0.50 >= 0.40), the contest stays with them and their neighbours
+    order, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.50, first=[1, 2, 3, 4, 5])
+    assert sorted(order) == [0, 1, 2, 3, 4, 5] and ident.winner.labels == ["X0"]
+
+
 def test_image_only_answers_are_at_best_proposed():
     a, b = _h([], 0.50), _h([], 0.60)
     assert decide_image_only([a, b], RULE).status == "proposed"
