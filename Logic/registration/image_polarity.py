@@ -10,12 +10,12 @@ refinement, no landmark term)::
 
     score(p) = max_s GC_refined(s, p)        (s the peaks of p's spatial map)
 
-One start per polarity (its best database pose) was not enough: on the second CT's report half the right
-polarity's single refinement ended at GC 0.36 against 0.41 for the wrong one, while where the clicks put the CT
-the right one reaches 0.54 (0.69 on the other case) - a local optimum, not an ambiguous image.
-
-The chosen polarity's refinements are the levels stage's own starts (same image, same map, same refinement), so
-``identify_from_image`` reuses them (``registered=``): the check costs the other polarity's refinements only.
+These are the no-click answer's own starts (same image, same map, same refinement), so the polarity is judged on
+the same search the answer uses, and ``identify_from_image`` reuses the chosen polarity's refinements
+(``registered=``): the check costs the other polarity's refinements only. It does not find every pose: on the
+second CT's intensifier images no peak of the right polarity's map lies near the true pose (report case 5: its
+three refine to GC 0.35, 0.38, 0.24, the wrong polarity's to 0.46, while where the clicks put the CT the right one
+reaches 0.54), so without clicks their polarity stays inverted (README, appearance benchmark).
 Frames and units as in ``labelling_fit``.
 """
 

@@ -15,13 +15,12 @@ named clicks start with the names and their neighbours one level up and down. Th
 neighbours of the best registered labelling are registered too: the winner has always beaten the look-alike
 labellings next to it. When, for unnamed clicks, the best of them still explains the image poorly (image
 agreement under the confidence rule's floor, or its clicks fitted beyond the cap), every other labelling is
-registered too: the
-click spacing can make the true labelling one of the least plausible (seen: a chest case whose true T10-T12 was
-the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT rank labellings reliably
-(the right one often ranked last after 160 evaluations and first after 800). Finally the leading two are each
-refitted from the other's refined pose (a second, independent start; each keeps its better refinement), so neither
-loses to a local optimum of its optimiser; if the lead changes hands, the answer is not stable
-(``level_confidence``).
+registered too: the click spacing can make the true labelling one of the least plausible (seen: a chest case
+whose true T10-T12 was the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT
+rank labellings reliably (the right one often ranked last after 160 evaluations and first after 800). Finally the
+leading two are each refitted from the other's refined pose (a second, independent start; each keeps its better
+refinement), so neither loses to a local optimum of its optimiser; if the lead changes hands, the answer is not
+stable (``level_confidence``).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks on the image alone and challenges the
 best with its pose moved one level up and down; the answer is only ever **proposed**.
