@@ -228,14 +228,13 @@ def _coarse(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarra
 
 
 def polarity_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
-    """{"bone-dark": max_k -GC(R, D_k), "bone-bright": max_k GC(R, D_k)} and the best DRR index of each.
+    """{"bone-dark": max_k -GC(R, D_k), "bone-bright": max_k GC(R, D_k)}.
 
     ``drrs``: (n, rows, cols) coarse DRRs (line integrals); ``factor``: detector binning to their pixel."""
     shape = drrs.shape[1:]
     coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
     g = similarity("gc", _coarse(rank_image(pixels, mask), factor, shape), drrs, coarse_mask)
-    return {"bone-dark": float(np.max(-g)), "bone-bright": float(np.max(g)),
-            "best_index": {"bone-dark": int(np.argmax(-g)), "bone-bright": int(np.argmax(g))}}
+    return {"bone-dark": float(np.max(-g)), "bone-bright": float(np.max(g))}
 
 
 def better_storage(gc_by_storage: dict) -> str:

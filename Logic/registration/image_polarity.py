@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, refit_from
+from carmreg.logic.registration.labelling_fit import LabellingFit, unlabelled_fit
 
 
 @dataclass
@@ -45,11 +45,6 @@ class ImagePolarity:
     def pairs(self, polarity: str) -> list[tuple[np.ndarray, LabellingFit]]:
         """(start pose, refined fit) of ``polarity``, for ``identify_from_image(registered=...)``."""
         return list(zip(self.starts.get(polarity, []), self.registered.get(polarity, []), strict=True))
-
-
-def unlabelled_fit(ctx: FitContext, start: np.ndarray, shift: int = 0) -> LabellingFit:
-    """One refinement on the image alone (no clicks: no landmark term) from ``start``."""
-    return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start)
 
 
 def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None) -> ImagePolarity:

@@ -132,6 +132,11 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> La
     return _refine_from(ctx, fit, np.asarray(start_pose, float))
 
 
+def unlabelled_fit(ctx: FitContext, start_pose: np.ndarray, shift: int = 0) -> LabellingFit:
+    """One image refinement without clicks (no landmark term) from ``start_pose``: a hypothesis of the image alone."""
+    return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start_pose)
+
+
 def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
     r = intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm,
                          fit.uv_px, ctx.refine, should_stop=ctx.should_stop)

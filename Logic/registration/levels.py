@@ -38,13 +38,13 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
-from carmreg.logic.registration.image_polarity import unlabelled_fit
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
     fit_labelling,
     plan_labelling,
     refit_from,
+    unlabelled_fit,
 )
 from carmreg.logic.registration.labellings import (
     candidate_labellings,
@@ -290,15 +290,12 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray,
     ``image_polarity``); a peak with the same start takes a copy of that fit instead of refining again."""
     p = params or IdentifyParameters()
 
-    def fit(start: np.ndarray, shift: int) -> LabellingFit:  # no clicks: no landmark term
-        return unlabelled_fit(ctx, start, shift)
-
     def reused(start: np.ndarray) -> LabellingFit | None:
         done = next((f for s, f in registered if np.array_equal(s, start) and f.refined), None)
         return None if done is None else dataclasses.replace(done, labels=list(done.labels), runs=list(done.runs))
 
     starts = peak_starts(score_map, ty_mm, tz_mm, tx_mm, p.image_starts)
-    hypotheses = [reused(s) or fit(s, 0) for s in starts]
+    hypotheses = [reused(s) or unlabelled_fit(ctx, s) for s in starts]
     challenged: set[str] = set()
     while True:  # challenge the best with its pose one level up and down, until the best has been challenged
         best = min(hypotheses, key=lambda h: h.score)
@@ -311,7 +308,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray,
             if delta is not None:
                 start = best.pose.copy()
                 start[:3] += (delta[1], delta[0], delta[2])
-                hypotheses.append(fit(start, step))
+                hypotheses.append(unlabelled_fit(ctx, start, step))
     for h in hypotheses:
         h.labels = [central_level(ctx.geometry, h.pose, ct)]
     distinct = {}
