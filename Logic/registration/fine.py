@@ -19,11 +19,11 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import cma
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.projection_distance import mpde_mm
+from carmreg.logic.registration.cma_search import cma_strategy
 
 
 @dataclass
@@ -61,11 +61,8 @@ def fine_search(geometry: CarmGeometry, start_pose: np.ndarray, points_lps_mm: n
     t0 = time.perf_counter()
     x0 = np.asarray(start_pose, float).copy()
     x0[3:] = np.clip(x0[3:], -params.bounds[3], params.bounds[3])
-    half = np.asarray(params.bounds, float)
-    options = {"popsize": params.popsize, "maxfevals": params.max_evaluations, "seed": params.seed,
-               "CMA_stds": list(params.sigma), "bounds": [list(x0 - half), list(x0 + half)],
-               "tolfun": 1e-5, "tolx": 1e-4, "verbose": -9, "verb_log": 0, "verb_disp": 0}
-    es = cma.CMAEvolutionStrategy(x0, 1.0, options)
+    es = cma_strategy(x0, params.sigma, params.bounds, params.popsize, params.max_evaluations, params.seed,
+                      tolx=1e-4)
     best = (np.inf, np.inf, x0)
     result = FineResult(x0, np.inf, np.inf, 0)
     while not es.stop():

@@ -24,7 +24,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import cma
 import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals, row_spans
@@ -32,6 +31,7 @@ from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.image.prepare import bin_image, bin_mask
+from carmreg.logic.registration.cma_search import cma_strategy
 from carmreg.logic.similarity.metrics import prepare
 
 
@@ -90,11 +90,7 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     fixed = bin_image(xray_line_integral, factor)[:rows, :cols]
     fmask = bin_mask(mask, factor)[:rows, :cols]
     x0 = np.asarray(start_pose, float).copy()
-    half = np.asarray(p.bounds, float)
-    es = cma.CMAEvolutionStrategy(x0, 1.0, {
-        "popsize": p.popsize, "maxfevals": p.max_evaluations, "seed": p.seed, "CMA_stds": list(p.sigma),
-        "bounds": [list(x0 - half), list(x0 + half)], "tolfun": 1e-5, "tolx": 1e-3,
-        "verbose": -9, "verb_log": 0, "verb_disp": 0})
+    es = cma_strategy(x0, p.sigma, p.bounds, p.popsize, p.max_evaluations, p.seed, tolx=1e-3)
     spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it
     scores = prepare(p.metric, fixed, fmask, dtype=np.float64)  # float64: rankings repeat bit for bit
 
