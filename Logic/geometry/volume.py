@@ -127,7 +127,9 @@ def resample_isotropic(values: np.ndarray, ijk_to_lps: np.ndarray, spacing_mm: f
 
 @dataclass
 class MuLevel:
-    """One level of the attenuation pyramid: mu (1/mm, float32, C-contiguous) and its affine."""
+    """One level of the attenuation pyramid: mu (1/mm, float32) and its affine. Resampled levels are C-contiguous;
+    the CT's own grid keeps the CT's memory order (the DRR engines copy a level into their own layout anyway, and a
+    transposed copy of a whole CT costs ~0.5 s here, mostly first touches of fresh memory)."""
 
     mu_per_mm: np.ndarray
     ijk_to_lps: np.ndarray
@@ -156,7 +158,7 @@ class MuPyramid:
         mu_water): it identifies the level without computing it (cache keys)."""
         if self._ct_hash is None:
             h = hashlib.sha256()
-            h.update(np.ascontiguousarray(self.volume.hu).tobytes())
+            h.update(np.ascontiguousarray(self.volume.hu))  # the C-order bytes, without a second copy
             h.update(np.asarray(self.volume.ijk_to_lps, np.float64).tobytes())
             self._ct_hash = h
         h = self._ct_hash.copy()
@@ -168,7 +170,7 @@ class MuPyramid:
         key = None if spacing_mm is None else round(float(spacing_mm), 4)
         if key not in self._levels:
             if key is None:
-                mu = np.ascontiguousarray(hu_to_mu(self.volume.hu, self.mu_water_per_mm))
+                mu = hu_to_mu(self.volume.hu, self.mu_water_per_mm)
                 self._levels[None] = MuLevel(mu, self.volume.ijk_to_lps.copy(), None)
             else:
                 name = self.digest(key)[:24] if self.cache else ""

@@ -62,7 +62,7 @@ def grid(half_range_mm: float, step_mm: float, center_mm: float = 0.0) -> np.nda
 def level_digest(level: MuLevel) -> str:
     """SHA-256 of a mu level's voxels and affine (what the DRRs are rendered from)."""
     h = hashlib.sha256()
-    h.update(np.ascontiguousarray(level.mu_per_mm).tobytes())
+    h.update(np.ascontiguousarray(level.mu_per_mm))  # the C-order bytes, without a second copy
     h.update(np.asarray(level.ijk_to_lps, np.float64).tobytes())
     h.update(str(level.mu_per_mm.shape).encode())
     return h.hexdigest()
