@@ -79,7 +79,9 @@ class CaseMaker:
         return "abdomen" if "abdomen" in self.cts and case % 3 == 2 else "chest"
 
     def scenes(self, case: int, detectors: set[str]) -> dict[str, app.Scene]:
-        """The case's scene on each detector (a new pose is drawn until both show 3 adjacent levels)."""
+        """The case's scene on each of ``detectors`` (a new pose is drawn until every detector shows 3 adjacent
+        levels). The scenes of every detector are made, in one order, whichever are asked for: they draw from one
+        random stream, so a case run with some of its variants gets the images it gets with all of them."""
         name = self.ct_name(case)
         (ct, labels, centroids), _, _ = self.cts[name]
         if name not in self.parts:
@@ -88,8 +90,9 @@ class CaseMaker:
         for _ in range(20):
             pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids)
             try:
-                return {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
-                                          app.DETECTORS[d], rng) for d in sorted(detectors)}
+                every = {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
+                                           app.DETECTORS[d], rng) for d in sorted(app.DETECTORS)}
+                return {d: every[d] for d in detectors}
             except LookupError:
                 continue
         raise RuntimeError(f"case {case}: no pose with 3 adjacent visible levels in 20 draws")
@@ -401,7 +404,7 @@ def main(argv=None) -> int:
     parser.add_argument("--half", choices=("all", "tune", "report"), default="all",
                         help="only the cases of this half (tune = even index, report = odd)")
     parser.add_argument("--ct", choices=("any", "chest", "abdomen"), default="any",
-                        help="only the cases of this CT (abdomen = the second CT: case index % 3 == 2)")
+                        help="only the cases of this CT (abdomen = the second CT: case index %% 3 == 2)")
     parser.add_argument("--variants", default=",".join(app.VARIANTS))
     parser.add_argument("--modes", default="unnamed,named,wrong")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
