@@ -161,6 +161,16 @@ class Appearance:
         """A level answer may be confident (``trusted_appearance``)."""
         return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
 
+    def take_polarity_verdict(self, again: Appearance) -> None:
+        """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with the
+        levels contest's winner judged at the clicks too): how clearly, by what, and the note."""
+        if again.polarity != self.polarity:
+            raise ValueError("a verdict on another polarity cannot be taken over: the image was converted as "
+                             f"{self.polarity}")
+        self.clear, self.clarity_gc, self.threshold_gc = again.clear, again.clarity_gc, again.threshold_gc
+        self.decided_by, self.image_polarity, self.note = again.decided_by, again.image_polarity, again.note
+        self.scores["refined"] = again.scores.get("refined")
+
     def set_storage(self, gc_by_storage: dict) -> None:
         """Record the best GC of each conversion (``storage_gc``) and, for a bone-dark image, use the
         better-agreeing one (module docstring)."""

@@ -25,6 +25,10 @@ unnamed clicks start with ``UNNAMED_LEADERS`` labellings and add the next most p
 are clear or ``MAX_UNNAMED_LEADERS`` were judged (the leading labellings can all be wrong ones: then the right
 polarity has no aligned spine to show either, and the verdict stays unclear).
 
+When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
+pipeline registers that labelling too, under both polarities (``judged_also``), and takes a clear verdict for the
+polarity in use (``pipeline``; the landmark fit of a labelling is shared by its polarities).
+
 The chosen polarity's registrations are the levels stage's own (same image, same mu level, same refinement), so
 it reuses them (``identify_levels(registered=...)``): the check costs the other polarity's refinements only.
 Frames and units as in ``labelling_fit``.
@@ -35,10 +39,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from carmreg.logic.image.appearance import verdict_at_clicks
-from carmreg.logic.registration.labelling_fit import LabellingFit, fit_labelling
+from carmreg.logic.registration.fine import FineResult
+from carmreg.logic.registration.labelling_fit import LabellingFit, fit_labelling, landmark_fit
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
 
+CLEAR_WITH_WINNER_GC = 0.30  # the lead a verdict needs when it rests on the levels contest's winner too
+# (``judged_also``): that labelling won on the image converted as the polarity in use, so the evidence leans
+# toward it; chosen on the appearance benchmark's tune half (right answers led by 0.60-0.87, a mirrored display's
+# wrong polarity by 0.12)
 UNNAMED_LEADERS = 2   # unnamed clicks: the most plausible labellings judged first under both polarities
 MAX_UNNAMED_LEADERS = 3  # ... and at most (appearance benchmark: 64 of 78 unnamed runs were clear after 2, 3 more
 #                          after 3, 2 more after 4-5 at ~2 s each; 9 never)
@@ -71,16 +80,32 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
     leaders = list(plan.first) if plan.given_index is not None else list(plan.first[:MAX_UNNAMED_LEADERS])
     count = len(leaders) if plan.given_index is not None else min(UNNAMED_LEADERS, len(leaders))
     registered = {polarity: [] for polarity in contexts}
+    landmark_fits = {}  # a labelling's landmark fit depends on the clicks only: one for both polarities
     while True:
         for polarity, ctx in contexts.items():
             for i in leaders[len(registered[polarity]):count]:
                 if progress is not None:
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
-                registered[polarity].append(fit_labelling(ctx, _fresh(plan.fits[i])))
+                if i not in landmark_fits:
+                    landmark_fits[i] = landmark_fit(ctx, plan.fits[i])
+                registered[polarity].append(fit_labelling(ctx, _fresh(plan.fits[i], landmark_fits[i])))
         evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
         if count >= len(leaders) or verdict_at_clicks(evidence.scores, evidence.fits)[2]:
             return evidence
         count += 1
+
+
+def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, rule: ConfidenceRule
+                ) -> ClickPolarity:
+    """``evidence`` with one more labelling registered under every polarity exactly as the leaders were (``planned``:
+    ``plan_labelling`` on these contexts): the levels contest's winner when it was not among the leaders (the
+    leaders, the most plausible by click spacing, can all be wrong ones, and then neither polarity shows an aligned
+    spine)."""
+    registered = {polarity: list(fits) for polarity, fits in evidence.registered.items()}
+    fine = landmark_fit(next(iter(contexts.values())), planned)
+    for polarity, ctx in contexts.items():
+        registered[polarity].append(fit_labelling(ctx, _fresh(planned, fine)))
+    return _evidence(registered, [*evidence.labels, list(planned.labels)], evidence.dark_storage, rule)
 
 
 def _evidence(registered: dict, labels: list, dark_storage: str, rule: ConfidenceRule) -> ClickPolarity:
@@ -94,7 +119,7 @@ def _evidence(registered: dict, labels: list, dark_storage: str, rule: Confidenc
     return ClickPolarity(scores, fits, {p: list(f) for p, f in registered.items()}, labels, dark_storage)
 
 
-def _fresh(plan: LabellingFit) -> LabellingFit:
-    """The planned labelling (depth search only), as a new object to register."""
-    return LabellingFit(list(plan.labels), plan.shift, plan.points_lps_mm, plan.uv_px, plan.depth)
+def _fresh(plan: LabellingFit, fine: FineResult) -> LabellingFit:
+    """The planned labelling (depth search only) with its landmark fit, as a new object to register."""
+    return LabellingFit(list(plan.labels), plan.shift, plan.points_lps_mm, plan.uv_px, plan.depth, fine)
 

@@ -112,17 +112,25 @@ def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.
 
 
 def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = np.inf) -> LabellingFit:
-    """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose, then the
-    wide image refinement that scores it (module docstring). Returns the same object, filled. A labelling whose
+    """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose (unless
+    ``fit.fine`` is already there: ``landmark_fit``), then the wide image refinement that scores it (module
+    docstring). Returns the same object, filled. A labelling whose
     landmark fit leaves the clicks' mPDE above ``landmark_gate_mm`` is not refined (``refined`` stays False):
     the fine search minimises that mPDE, and the image refinement only trades it for image agreement."""
     if ctx.on_labelling is not None:
         ctx.on_labelling(list(fit.labels))
-    fit.fine = fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine,
-                           should_stop=ctx.should_stop)
+    if fit.fine is None:
+        fit.fine = landmark_fit(ctx, fit)
     if fit.fine.mpde_mm > landmark_gate_mm:
         return fit
     return _refine_from(ctx, fit, fit.fine.pose)
+
+
+def landmark_fit(ctx: FitContext, fit: LabellingFit) -> FineResult:
+    """The anchored landmark fit (Algorithm 4) of a planned labelling, from its depth pose. It depends on the
+    clicks, the labels, the geometry and ``ctx.fine`` only, not on the image: registrations of one labelling on two
+    conversions of the image (the polarities) share it."""
+    return fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine, should_stop=ctx.should_stop)
 
 
 def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:

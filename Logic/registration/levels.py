@@ -22,6 +22,13 @@ leading two are each refitted from the other's refined pose (a second, independe
 refinement), so neither loses to a local optimum of its optimiser; if the lead changes hands, the answer is not
 stable (``level_confidence``).
 
+The X-ray's appearance (polarity, orientation) was judged before the contest, at the poses of its most plausible
+labellings (``click_polarity``, ``click_orientation``). When that left it unclear and the contest's winner was
+not among them, and the appearance alone keeps the verdict from standing, the pipeline judges it again with the
+winner too (``judge_appearance``; seen:
+the chest case above, right but ambiguous in 8 of 8 runs because its polarity had been judged on wrong labellings
+only, where neither polarity shows an aligned spine).
+
 No clicks: ``identify_from_image`` refines the spatial map's best peaks on the image alone and challenges the
 best with its pose moved one level up and down; the answer is only ever **proposed**.
 
@@ -198,10 +205,14 @@ def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: 
 
 
 def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
-                    appearance_clear: bool = True, registered: list | tuple = ()) -> LevelIdentification:
+                    appearance_clear: bool = True, registered: list | tuple = (),
+                    judge_appearance=None) -> LevelIdentification:
     """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
     ``registered``: labellings already registered on this very X-ray image (the polarity check at the clicks'
-    poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks."""
+    poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks.
+    ``judge_appearance(winner) -> bool``: when the appearance is not clear and it alone keeps the verdict from
+    standing, called with the contest's winner; whether the appearance is clear once that labelling is judged too
+    (the pipeline's)."""
     p = params or IdentifyParameters()
     plan = plan_contest(ctx, ct, clicks, p)
     fits = plan.fits
@@ -219,6 +230,9 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         _contest(ctx, fits, [])  # a new leader is compared with its neighbours too
     given = fits[plan.given_index] if plan.given_index is not None else None
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
+    if not appearance_clear and judge_appearance is not None \
+            and decide(fits, given, p.rule, stable=stable).status != "ambiguous":  # the appearance alone blocks it
+        verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=judge_appearance(verdict.winner))
     chosen = given if given is not None else verdict.winner
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),

@@ -53,13 +53,18 @@ from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
 from carmreg.logic.registration.click_orientation import orientation_at_clicks, oriented_context, rival_orientations
-from carmreg.logic.registration.click_polarity import ClickPolarity, polarity_at_clicks
+from carmreg.logic.registration.click_polarity import (
+    CLEAR_WITH_WINNER_GC,
+    ClickPolarity,
+    judged_also,
+    polarity_at_clicks,
+)
 from carmreg.logic.registration.database import build_database, grid
 from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
 from carmreg.logic.registration.image_refine import intensity_refine
-from carmreg.logic.registration.labelling_fit import FitContext
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, plan_labelling
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
@@ -213,13 +218,49 @@ class CarmRegLogic:
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
-        self._orientation_at_clicks(state)
+        self._orientation_at_clicks(state, "spatial")
+        self._appearance_warnings(state)
+        return a.as_dict()
+
+    @staticmethod
+    def _appearance_warnings(state: RegistrationState) -> None:
+        """The warnings on the X-ray's appearance, replacing earlier ones (the levels stage may judge it again)."""
+        a = state.appearance
+        state.warnings[:] = [w for w in state.warnings if not w.startswith(("X-ray polarity:", "X-ray orientation:"))]
         if not a.clear:
             state.warnings.append(f"X-ray polarity: {a.note}")
         if a.orientation == "as-stored" and not a.orientation_clear:
             state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned about as well as "
                                   "as stored; check that the display is not mirrored or rotated")
-        return a.as_dict()
+
+    def _appearance_with(self, state: RegistrationState, winner: LabellingFit) -> bool:
+        """The levels stage's ``judge_appearance``: whether the appearance is trusted once the contest's winner is
+        judged at the clicks too. When the polarity check had not registered that labelling, it is registered under
+        both polarities as the leaders were (``click_polarity.judged_also``); a clear verdict for the polarity in use
+        is taken when it leads by ``CLEAR_WITH_WINNER_GC``, and the orientation is judged again at the clicks with it.
+        A verdict for the other polarity, or a narrower one, changes nothing (the contest ran on this conversion of the
+        image): still not trusted."""
+        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        if cp is None or list(winner.labels) in [list(lb) for lb in cp.labels]:
+            return a.trusted
+        contexts = {polarity: self._fit_context(state, self._polarity_image(state, polarity, cp.dark_storage),
+                                                0.0, 0.0) for polarity in POLARITIES}
+        planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
+        self._report("levels", 0.95, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
+        extended = judged_also(contexts, cp, planned, p.identify.rule)
+        again = decide_polarity(a.scores["database"], extended.scores, p.polarity, xray.bone_dark,
+                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                                refined_by=REFINED_AT_CLICKS, fits=extended.fits)
+        if again.polarity != a.polarity or not again.clear or again.clarity_gc < CLEAR_WITH_WINNER_GC:
+            a.scores["at_clicks_with_winner"] = extended.as_dict()
+            return a.trusted
+        a.take_polarity_verdict(again)
+        a.scores["at_clicks"] = extended.as_dict()
+        state.click_polarity = extended
+        a.set_orientation(a.orientation_scores)  # back to the database's verdict, which the clicks' may not overrule
+        self._orientation_at_clicks(state, "levels")
+        self._appearance_warnings(state)
+        return a.trusted
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
         """The leading labellings registered under both polarities (``click_polarity``); None without enough
@@ -258,7 +299,7 @@ class CarmRegLogic:
         dark = polarity == "bone-dark"
         return attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
 
-    def _orientation_at_clicks(self, state: RegistrationState) -> None:
+    def _orientation_at_clicks(self, state: RegistrationState, stage: str) -> None:
         """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
         judged where the clicks put the CT (``click_orientation``), which then decides."""
         a, cp = state.appearance, state.click_polarity
@@ -266,7 +307,7 @@ class CarmRegLogic:
             return
         base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
         contexts = {o: oriented_context(base, o) for o in rival_orientations(a.orientation_scores)}
-        self._report("spatial", 0.95, "judging the display's orientation at the clicks")
+        self._report(stage, 0.95, "judging the display's orientation at the clicks")
         evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
                                          state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named)
         a.set_orientation_at_clicks(evidence.as_dict())
@@ -363,7 +404,8 @@ class CarmRegLogic:
                                         p.identify, appearance_clear, registered=reuse)
         else:
             ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
-                                    registered=self._registered_at_clicks(state))
+                                    registered=self._registered_at_clicks(state),
+                                    judge_appearance=lambda winner: self._appearance_with(state, winner))
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()

@@ -229,7 +229,7 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
         sample_ct, case, tmp_path, tmp_path_factory):
     """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
     under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
-    rather than computing them again."""
+    rather than computing them again; the contest's winner, not among them, is judged too (``judged_also``)."""
     ct, _, centroids = sample_ct
     sim, geometry = case
     pixels = sim.pixels.astype(np.float64)
@@ -237,13 +237,21 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
-    for stage in ("database", "spatial", "levels"):
+    for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
     a, at_clicks = state.appearance, state.click_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)
     assert at_clicks.scores["bone-bright"] >= at_clicks.scores["bone-dark"] + 0.10
     assert a.scores["at_clicks"]["labellings"] == at_clicks.labels
     assert at_clicks.fits["bone-bright"]
+    logic.run_stage(state, "levels")
+    # the contest's winner, the true labelling, was not among the two leaders (the most plausible by click spacing):
+    # the appearance, not trusted on the leaders alone, was judged again with it too, and the answer is confident
+    winner = state.identification.winner.labels
+    assert winner == list(sim.clicks.labels) and winner not in at_clicks.labels
+    assert state.click_polarity.labels == [*at_clicks.labels, winner] and a.trusted
+    assert a.scores["at_clicks"]["labellings"] == state.click_polarity.labels
+    assert state.identification.status == "confident"
     def same_registration(f, g):  # the first refinement's objective, to the last bit
         return f.labels == g.labels and f.runs[:1] == g.runs[:1]
 
@@ -252,6 +260,9 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     assert len(reused) == len(at_clicks.labels) >= 2
     assert not any(same_registration(f, g) for f in fits for g in at_clicks.registered["bone-dark"])
     assert all(g.starts == 1 for g in at_clicks.registered["bone-bright"])  # the contest refitted copies
+    # a labelling's landmark fit (clicks only, not the image) is made once and shared by both polarities
+    for dark, bright in zip(at_clicks.registered["bone-dark"], at_clicks.registered["bone-bright"], strict=True):
+        assert dark.labels == bright.labels and dark.fine is bright.fine
 
 
 @pytest.mark.slow

@@ -158,7 +158,8 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
     assert judge(0.015, Evidence.from_checks(v.checks), ConfidenceRule(margin=0.01))[0] == "confident"
 
 
-def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11) -> list:
+def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11,
+                    appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70) -> list:
     """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
     0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
     indices registered, in order. The contest's control flow is the product's own."""
@@ -172,7 +173,7 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
         if fit.refine is None:
             order.append(i)
         good = i == truth
-        fit.refine = RefineResult(np.zeros(6), 0.0, 0.70 if good else gc_of_the_others, 1.0, 1,
+        fit.refine = RefineResult(np.zeros(6), 0.0, truth_gc if good else gc_of_the_others, 1.0, 1,
                                   objective_end=(0.30 if good else 0.70) + 0.001 * i)
         return fit
 
@@ -180,7 +181,8 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
     monkeypatch.setattr(levels, "plan_contest", lambda *a, **k: plan)
     monkeypatch.setattr(levels, "fit_labelling", register)
     monkeypatch.setattr(levels, "refit_from", register)
-    ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))))
+    ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))), None, appearance_clear,
+                                   judge_appearance=judge_appearance)
     return order, ident
 
 
@@ -193,6 +195,32 @@ def test_when_the_most_plausible_labellings_explain_the_image_poorly_every_label
     # when they explain it well (GC 0.50 >= 0.40), the contest stays with them and their neighbours
     order, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.50, first=[1, 2, 3, 4, 5])
     assert sorted(order) == [0, 1, 2, 3, 4, 5] and ident.winner.labels == ["X0"]
+
+
+def test_an_unclear_appearance_is_judged_again_with_the_contests_winner_which_alone_can_make_it_confident(
+        monkeypatch):
+    """The appearance (polarity, orientation) judged on the most plausible labellings only was unclear; the winner
+    is handed to ``judge_appearance`` before the verdict, and what it says decides the appearance check."""
+    asked = []
+
+    def judge(winner):
+        asked.append(list(winner.labels))
+        return verdict
+
+    for verdict, status in ((True, "confident"), (False, "ambiguous")):
+        asked.clear()
+        _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
+                                   appearance_clear=False, judge_appearance=judge)
+        assert asked == [["X9"]] and ident.winner.labels == ["X9"] and ident.status == status
+        assert ident.checks["appearance"]["ok"] is verdict
+    asked.clear()  # a clear appearance is not judged again
+    _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
+                               judge_appearance=judge)
+    assert asked == [] and ident.status == "confident"
+    verdict = True  # nor is it when another check fails anyway (the winner's GC 0.35 under the 0.40 floor)
+    _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
+                               appearance_clear=False, judge_appearance=judge, truth_gc=0.35)
+    assert asked == [] and ident.status == "ambiguous" and ident.winner.labels == ["X9"]
 
 
 def test_image_only_answers_are_at_best_proposed():
