@@ -161,14 +161,16 @@ class Appearance:
         """A level answer may be confident (``trusted_appearance``)."""
         return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
 
-    def take_polarity_verdict(self, again: Appearance) -> None:
-        """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with the
-        levels contest's winner judged at the clicks too): how clearly, by what, and the note."""
+    def take_polarity_verdict(self, again: Appearance, evidence: str, threshold_gc: float) -> None:
+        """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with
+        ``evidence``, e.g. the levels contest's winner, judged at the clicks too, where a lead of ``threshold_gc`` is
+        needed): how clearly, by what, and the note."""
         if again.polarity != self.polarity:
             raise ValueError("a verdict on another polarity cannot be taken over: the image was converted as "
                              f"{self.polarity}")
-        self.clear, self.clarity_gc, self.threshold_gc = again.clear, again.clarity_gc, again.threshold_gc
-        self.decided_by, self.image_polarity, self.note = again.decided_by, again.image_polarity, again.note
+        self.clear, self.clarity_gc, self.threshold_gc = again.clear, again.clarity_gc, threshold_gc
+        self.decided_by, self.image_polarity = again.decided_by, again.image_polarity
+        self.note = f"{again.note}; confirmed with {evidence} judged too (a lead of {threshold_gc} needed there)"
         self.scores["refined"] = again.scores.get("refined")
 
     def set_storage(self, gc_by_storage: dict) -> None:

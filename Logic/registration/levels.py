@@ -23,11 +23,10 @@ refinement), so neither loses to a local optimum of its optimiser; if the lead c
 stable (``level_confidence``).
 
 The X-ray's appearance (polarity, orientation) was judged before the contest, at the poses of its most plausible
-labellings (``click_polarity``, ``click_orientation``). When that left it unclear and the contest's winner was
-not among them, and the appearance alone keeps the verdict from standing, the pipeline judges it again with the
-winner too (``judge_appearance``; seen:
-the chest case above, right but ambiguous in 8 of 8 runs because its polarity had been judged on wrong labellings
-only, where neither polarity shows an aligned spine).
+labellings (``click_polarity``, ``click_orientation``). When that left it unclear, the contest's winner was not
+among them, and the appearance alone keeps the verdict from standing, the pipeline judges it again with the
+winner too (``judge_appearance``; seen: the chest case above, right but ambiguous in 8 of 8 runs because its
+polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks on the image alone and challenges the
 best with its pose moved one level up and down; the answer is only ever **proposed**.

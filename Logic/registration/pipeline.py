@@ -254,7 +254,7 @@ class CarmRegLogic:
         if again.polarity != a.polarity or not again.clear or again.clarity_gc < CLEAR_WITH_WINNER_GC:
             a.scores["at_clicks_with_winner"] = extended.as_dict()
             return a.trusted
-        a.take_polarity_verdict(again)
+        a.take_polarity_verdict(again, f"the levels' winner {', '.join(winner.labels)}", CLEAR_WITH_WINNER_GC)
         a.scores["at_clicks"] = extended.as_dict()
         state.click_polarity = extended
         a.set_orientation(a.orientation_scores)  # back to the database's verdict, which the clicks' may not overrule

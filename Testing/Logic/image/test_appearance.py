@@ -251,6 +251,7 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     assert winner == list(sim.clicks.labels) and winner not in at_clicks.labels
     assert state.click_polarity.labels == [*at_clicks.labels, winner] and a.trusted
     assert a.scores["at_clicks"]["labellings"] == state.click_polarity.labels
+    assert a.threshold_gc == 0.30 and a.clarity_gc >= 0.30 and "levels' winner" in a.note
     assert state.identification.status == "confident"
     def same_registration(f, g):  # the first refinement's objective, to the last bit
         return f.labels == g.labels and f.runs[:1] == g.runs[:1]
