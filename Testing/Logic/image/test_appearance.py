@@ -102,6 +102,25 @@ def test_the_polarity_at_the_clicks_poses_decides_and_each_part_of_its_clear_rul
     assert (kept.polarity, kept.clear) == ("bone-bright", False) and kept.clarity_gc == pytest.approx(-0.13)
 
 
+def test_a_verdict_with_more_evidence_is_taken_over_only_for_the_polarity_in_use():
+    """``take_polarity_verdict``: the levels' winner judged too confirms the polarity the image was converted as
+    (clarity, threshold and note follow); a verdict for the other polarity cannot be taken over."""
+    from carmreg.logic.image.appearance import REFINED_AT_CLICKS
+
+    def verdict(dark, bright):
+        return decide_polarity({"bone-dark": 0.3, "bone-bright": 0.2}, {"bone-dark": dark, "bone-bright": bright},
+                               "auto", True, "PNG", None, refined_by=REFINED_AT_CLICKS,
+                               fits={"bone-dark": True, "bone-bright": True})
+
+    unclear = verdict(0.31, 0.25)
+    assert not unclear.clear and not unclear.trusted
+    unclear.take_polarity_verdict(verdict(0.79, 0.07), "the levels' winner T10, T11, T12", 0.30)
+    assert unclear.clear and unclear.clarity_gc == pytest.approx(0.72) and unclear.threshold_gc == 0.30
+    assert "confirmed with the levels' winner T10, T11, T12" in unclear.note and unclear.trusted
+    with pytest.raises(ValueError):
+        unclear.take_polarity_verdict(verdict(0.07, 0.79), "the levels' winner T10, T11, T12", 0.30)
+
+
 def test_a_file_that_states_its_polarity_and_an_image_that_disagrees_are_a_conflict_never_trusted():
     """DICOM PixelIntensityRelationshipSign is evidence: agreeing settles a close call; disagreeing (even by a clear
     GC gap, as a mis-found field gave on a linear flat-panel image) keeps the file's word and is not trusted."""
