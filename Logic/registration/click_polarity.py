@@ -45,9 +45,10 @@ from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark
 from carmreg.logic.registration.levels import ContestPlan
 
 CLEAR_WITH_WINNER_GC = 0.30  # the lead a verdict needs when it rests on the levels contest's winner too
-# (``judged_also``): that labelling won on the image converted as the polarity in use, so the evidence leans
-# toward it; chosen on the appearance benchmark's tune half (right answers led by 0.60-0.87, a mirrored display's
-# wrong polarity by 0.12)
+# (``judged_also``), for the polarity and for the stored orientation alike: that labelling won on the image as
+# stored and converted as the polarity in use, so the evidence leans toward both. Chosen on the appearance
+# benchmark's tune half: right answers led by 0.60-0.87 (polarity) and 0.36-0.60 (orientation); a mirrored
+# display's wrong polarity by 0.12, and mirrored displays judged at the clicks trailed their mirror by 0.25-0.31
 UNNAMED_LEADERS = 2   # unnamed clicks: the most plausible labellings judged first under both polarities
 MAX_UNNAMED_LEADERS = 3  # ... and at most (appearance benchmark: 64 of 78 unnamed runs were clear after 2, 3 more
 #                          after 3, 2 more after 4-5 at ~2 s each; 9 never)
@@ -106,6 +107,14 @@ def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, 
     for polarity, ctx in contexts.items():
         registered[polarity].append(fit_labelling(ctx, _fresh(planned, fine)))
     return _evidence(registered, [*evidence.labels, list(planned.labels)], evidence.dark_storage, rule)
+
+
+def confirms(evidence: ClickPolarity, polarity: str) -> bool:
+    """Whether the evidence with the levels' winner (``judged_also``) confirms ``polarity``: the image's own
+    verdict at the clicks (``verdict_at_clicks``: clicks fitted, GC floor) names it, by a lead of at least
+    ``CLEAR_WITH_WINNER_GC``. Asked of the image itself, whatever the user or the file said."""
+    seen, lead, clear = verdict_at_clicks(evidence.scores, evidence.fits)
+    return bool(clear and seen == polarity and lead >= CLEAR_WITH_WINNER_GC)
 
 
 def _evidence(registered: dict, labels: list, dark_storage: str, rule: ConfidenceRule) -> ClickPolarity:

@@ -28,6 +28,7 @@ Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -56,6 +57,7 @@ from carmreg.logic.registration.click_orientation import orientation_at_clicks, 
 from carmreg.logic.registration.click_polarity import (
     CLEAR_WITH_WINNER_GC,
     ClickPolarity,
+    confirms,
     judged_also,
     polarity_at_clicks,
 )
@@ -235,31 +237,39 @@ class CarmRegLogic:
 
     def _appearance_with(self, state: RegistrationState, winner: LabellingFit) -> bool:
         """The levels stage's ``judge_appearance``: whether the appearance is trusted once the contest's winner is
-        judged at the clicks too. When the polarity check had not registered that labelling, it is registered under
-        both polarities as the leaders were (``click_polarity.judged_also``); a clear verdict for the polarity in use
-        is taken when it leads by ``CLEAR_WITH_WINNER_GC``, and the orientation is judged again at the clicks with it.
-        A verdict for the other polarity, or a narrower one, changes nothing (the contest ran on this conversion of the
-        image): still not trusted."""
+        judged at the clicks too. Only for an image taken as stored (a refused orientation stays refused) whose
+        judged labellings did not include the winner: it is registered under both polarities as the leaders were
+        (``click_polarity.judged_also``). When the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC``
+        (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict stays one), that verdict is
+        taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
+        lead: the winner was chosen on the image as stored and as converted, so the evidence leans toward both.
+        Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
         a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
-        if cp is None or list(winner.labels) in [list(lb) for lb in cp.labels]:
+        a.scores.pop("at_clicks_with_winner", None)
+        if cp is None or a.orientation != "as-stored" or list(winner.labels) in [list(lb) for lb in cp.labels]:
             return a.trusted
         contexts = {polarity: self._fit_context(state, self._polarity_image(state, polarity, cp.dark_storage),
                                                 0.0, 0.0) for polarity in POLARITIES}
         planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
-        self._report("levels", 0.95, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
+        self._report("levels", 0.99, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
         extended = judged_also(contexts, cp, planned, p.identify.rule)
         again = decide_polarity(a.scores["database"], extended.scores, p.polarity, xray.bone_dark,
                                 xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
                                 refined_by=REFINED_AT_CLICKS, fits=extended.fits)
-        if again.polarity != a.polarity or not again.clear or again.clarity_gc < CLEAR_WITH_WINNER_GC:
+        if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
             a.scores["at_clicks_with_winner"] = extended.as_dict()
             return a.trusted
-        a.take_polarity_verdict(again, f"the levels' winner {', '.join(winner.labels)}", CLEAR_WITH_WINNER_GC)
-        a.scores["at_clicks"] = extended.as_dict()
-        state.click_polarity = extended
-        a.set_orientation(a.orientation_scores)  # back to the database's verdict, which the clicks' may not overrule
-        self._orientation_at_clicks(state, "levels")
-        self._appearance_warnings(state)
+        kept = (copy.deepcopy(a), cp, list(state.warnings))
+        try:
+            a.take_polarity_verdict(again, f"the levels' winner {', '.join(winner.labels)}", CLEAR_WITH_WINNER_GC)
+            a.scores["at_clicks"] = extended.as_dict()
+            state.click_polarity = extended
+            a.set_orientation(a.orientation_scores)  # the database's verdict, which the clicks' may not overrule
+            self._orientation_at_clicks(state, "levels", clear_gc=CLEAR_WITH_WINNER_GC)
+            self._appearance_warnings(state)
+        except BaseException:
+            state.appearance, state.click_polarity, state.warnings[:] = kept
+            raise
         return a.trusted
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
@@ -299,7 +309,7 @@ class CarmRegLogic:
         dark = polarity == "bone-dark"
         return attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
 
-    def _orientation_at_clicks(self, state: RegistrationState, stage: str) -> None:
+    def _orientation_at_clicks(self, state: RegistrationState, stage: str, clear_gc: float | None = None) -> None:
         """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
         judged where the clicks put the CT (``click_orientation``), which then decides."""
         a, cp = state.appearance, state.click_polarity
@@ -310,7 +320,7 @@ class CarmRegLogic:
         self._report(stage, 0.95, "judging the display's orientation at the clicks")
         evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
                                          state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named)
-        a.set_orientation_at_clicks(evidence.as_dict())
+        a.set_orientation_at_clicks(evidence.as_dict(), clear_gc)
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,
                      on_labelling=None) -> FitContext:

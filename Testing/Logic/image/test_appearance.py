@@ -2,12 +2,15 @@
 storage against the DRR database (bone dark, bone bright, an 8-bit JPEG with gamma and edge enhancement read
 through the real loader), orientation (a mirrored display is refused, never named with confidence)."""
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
 from scipy import ndimage
 from simulated_cases import simulated_ap_case
 
+from carmreg.logic.errors import CancelledError
 from carmreg.logic.image.appearance import decide_polarity, rank_image
 from carmreg.logic.image.field import field_mask
 from carmreg.logic.image.prepare import bin_image, bin_mask
@@ -158,6 +161,34 @@ def test_only_a_clear_polarity_and_a_clear_lead_of_the_stored_orientation_are_tr
     assert a.orientation == "mirrored-left-right" and not a.trusted
 
 
+def test_at_the_clicks_the_stored_orientation_is_clear_by_the_lead_asked_and_never_against_the_database():
+    """``set_orientation_at_clicks``: clear at ``CLEAR_ORIENTATION_AT_CLICKS_GC`` by default, at the lead asked when
+    the evidence leans toward the stored orientation (the levels' winner judged too); a database that found another
+    orientation clearly better is never overruled."""
+    from carmreg.logic.image.appearance import CLEAR_ORIENTATION_AT_CLICKS_GC, REFUSE_ORIENTATION_GC
+    from carmreg.logic.registration.click_polarity import CLEAR_WITH_WINNER_GC
+
+    database = {"as-stored": 0.45, "mirrored-left-right": 0.40, "flipped-up-down": 0.2, "turned-180": 0.2}
+    lead = (CLEAR_ORIENTATION_AT_CLICKS_GC + CLEAR_WITH_WINNER_GC) / 2
+    evidence = {"scores": {"as-stored": 0.70, "mirrored-left-right": 0.70 - lead},
+                "fitted": {"as-stored": True, "mirrored-left-right": True}}
+    a = decide_polarity({"bone-dark": 0.50, "bone-bright": 0.20}, None, "auto", True, "PNG", None)
+    a.set_orientation(database)
+    a.set_orientation_at_clicks(evidence)
+    assert a.orientation == "as-stored" and a.orientation_clear
+    a.set_orientation(database)
+    a.set_orientation_at_clicks(evidence, CLEAR_WITH_WINNER_GC)
+    assert a.orientation == "as-stored" and not a.orientation_clear and not a.trusted
+    wide = {"scores": {"as-stored": 0.75, "mirrored-left-right": 0.75 - CLEAR_WITH_WINNER_GC - 0.01},
+            "fitted": evidence["fitted"]}
+    a.set_orientation(database)
+    a.set_orientation_at_clicks(wide, CLEAR_WITH_WINNER_GC)
+    assert a.orientation_clear and a.trusted
+    a.set_orientation({**database, "mirrored-left-right": 0.45 + REFUSE_ORIENTATION_GC + 0.01})  # refused
+    a.set_orientation_at_clicks(wide, CLEAR_WITH_WINNER_GC)
+    assert not a.orientation_clear and not a.trusted
+
+
 @pytest.fixture(scope="module")
 def case(sample_ct):
     """One realistic simulated AP case (512 px, bone dark as stored) of the sample CT, T8 in the middle."""
@@ -243,21 +274,54 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
     assert all(g.labels == [] for g in evidence.registered["bone-bright"])  # the answer named copies
 
 
-@pytest.mark.slow
-def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
-        sample_ct, case, tmp_path, tmp_path_factory):
-    """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
-    under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
-    rather than computing them again; the contest's winner, not among them, is judged too (``judged_also``)."""
+def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch):
+    """(logic, state) of the case stored as a bone-bright PNG with unnamed clicks, after the spatial stage, under
+    stop 13's clear orientation lead at the clicks (0.10): its two leaders are wrong labellings, along which the
+    stored orientation leads its mirror by less than that, so the appearance is not trusted and the levels stage
+    judges it again with its winner (with today's 0.05 it is trusted from the start)."""
+    import carmreg.logic.image.appearance as appearance
+
+    monkeypatch.setattr(appearance, "CLEAR_ORIENTATION_AT_CLICKS_GC", 0.10)
     ct, _, centroids = sample_ct
     sim, geometry = case
-    pixels = sim.pixels.astype(np.float64)
-    bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
+    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
+    return logic, state
+
+
+@pytest.mark.slow
+def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sample_ct, case, tmp_path,
+                                                                          tmp_path_factory, monkeypatch):
+    """The levels stage judges the appearance again with its winner (next test); a cancel in the middle (here in
+    the orientation check at the clicks) leaves the appearance, the polarity evidence and the warnings as the
+    spatial stage left them, not half updated (a re-run would otherwise trust an orientation never checked)."""
+    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch)
+    before = json.dumps(state.appearance.as_dict(), sort_keys=True, default=str)
+    at_clicks, warnings = state.click_polarity, list(state.warnings)
+
+    def cancelled(*args, **kwargs):
+        raise CancelledError("registration cancelled by the user")
+
+    monkeypatch.setattr(logic, "_orientation_at_clicks", cancelled)
+    with pytest.raises(CancelledError):
+        logic.run_stage(state, "levels")
+    assert json.dumps(state.appearance.as_dict(), sort_keys=True, default=str) == before
+    assert state.click_polarity is at_clicks and state.warnings == warnings and not state.appearance.trusted
+
+
+@pytest.mark.slow
+def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
+        sample_ct, case, tmp_path, tmp_path_factory, monkeypatch):
+    """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
+    under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
+    rather than computing them again; the contest's winner, not among them, is judged too (``judged_also``)."""
+    sim = case[0]
+    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch)
+    assert not state.appearance.trusted
     a, at_clicks = state.appearance, state.click_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)
     assert at_clicks.scores["bone-bright"] >= at_clicks.scores["bone-dark"] + 0.10
@@ -272,6 +336,7 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
     assert a.scores["at_clicks"]["labellings"] == state.click_polarity.labels
     assert a.threshold_gc == 0.30 and a.clarity_gc >= 0.30 and "levels' winner" in a.note
     assert state.identification.status == "confident"
+
     def same_registration(f, g):  # the first refinement's objective, to the last bit
         return f.labels == g.labels and f.runs[:1] == g.runs[:1]
 

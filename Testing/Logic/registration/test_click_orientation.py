@@ -76,7 +76,8 @@ def test_the_rule_at_the_clicks_each_part_deciding():
                                  "fitted": fitted})
     assert (a.orientation, a.orientation_clear, a.trusted) == ("as-stored", True, True)
     assert a.orientation_decided_by == "image (at the clicks' poses)"
-    a.set_orientation_at_clicks({"scores": {**base, "mirrored-left-right": 0.55}, "fitted": fitted})
+    a.set_orientation_at_clicks({"scores": {**base, "mirrored-left-right": 0.601 - CLEAR_ORIENTATION_AT_CLICKS_GC},
+                                 "fitted": fitted})
     assert (a.orientation, a.orientation_clear, a.trusted) == ("as-stored", False, False)  # too close
     leading = {**base, "mirrored-left-right": 0.601 + REFUSE_ORIENTATION_AT_CLICKS_GC}
     a.set_orientation_at_clicks({"scores": leading, "fitted": fitted})

@@ -4,7 +4,7 @@ its clicks fit well enough to call the verdict clear."""
 import numpy as np
 
 from carmreg.logic.image.appearance import verdict_at_clicks
-from carmreg.logic.registration.click_polarity import _evidence
+from carmreg.logic.registration.click_polarity import CLEAR_WITH_WINNER_GC, _evidence, confirms
 from carmreg.logic.registration.image_refine import RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
@@ -39,3 +39,20 @@ def test_a_polarity_that_wins_gc_by_pulling_the_ct_off_the_clicks_loses_and_noth
     evidence = _evidence(tight, labels, "log-display", ConfidenceRule())
     assert evidence.fits["bone-dark"] and verdict_at_clicks(evidence.scores, evidence.fits)[::2] == ("bone-dark", True)
     assert evidence.as_dict()["mpde_mm"]["bone-dark"] == [1.0, 4.71]
+
+
+def test_the_levels_winner_confirms_a_polarity_only_by_the_images_own_clear_verdict_and_a_wide_lead():
+    """``confirms``: the image's verdict at the clicks must name the polarity in use, clearly (clicks fitted, GC
+    floor) and by ``CLEAR_WITH_WINNER_GC``; what the user or the file said does not count."""
+    labels = [["T4", "T5", "T6"], ["T10", "T11", "T12"]]
+
+    def evidence(dark_gc, bright_gc, dark_mpde=1.5, bright_mpde=1.5):
+        registered = {"bone-dark": [_fit(labels[0], 0.10, 3.0), _fit(labels[1], dark_gc, dark_mpde)],
+                      "bone-bright": [_fit(labels[0], 0.05, 3.0), _fit(labels[1], bright_gc, bright_mpde)]}
+        return _evidence(registered, labels, "log-display", ConfidenceRule())
+
+    assert confirms(evidence(0.79, 0.07), "bone-dark")                        # case 12: lead 0.72
+    assert not confirms(evidence(0.79, 0.07), "bone-bright")                  # a user's bone-bright: the image says no
+    assert not confirms(evidence(0.45, 0.45 - CLEAR_WITH_WINNER_GC + 0.02), "bone-dark")  # clear for leaders only
+    assert confirms(evidence(0.45, 0.45 - CLEAR_WITH_WINNER_GC - 0.02), "bone-dark")
+    assert not confirms(evidence(0.79, 0.07, dark_mpde=6.0, bright_mpde=6.0), "bone-dark")  # clicks not fitted
