@@ -26,8 +26,9 @@ are clear or ``MAX_UNNAMED_LEADERS`` were judged (the leading labellings can all
 polarity has no aligned spine to show either, and the verdict stays unclear).
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
-pipeline registers that labelling too, under both polarities (``judged_also``), and takes a clear verdict for the
-polarity in use (``pipeline``; the landmark fit of a labelling is shared by its polarities).
+pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
+the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``confirms``; ``pipeline._appearance_with``).
+A labelling's landmark fit depends on the clicks only and is shared by its polarities.
 
 The chosen polarity's registrations are the levels stage's own (same image, same mu level, same refinement), so
 it reuses them (``identify_levels(registered=...)``): the check costs the other polarity's refinements only.
