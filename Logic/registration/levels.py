@@ -228,10 +228,11 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [])  # a new leader is compared with its neighbours too
     given = fits[plan.given_index] if plan.given_index is not None else None
+    if not appearance_clear and judge_appearance is not None:
+        unblocked = decide(fits, given, p.rule, stable=stable)  # the verdict were the appearance clear
+        if unblocked.status != "ambiguous":  # the appearance alone keeps it from standing
+            appearance_clear = judge_appearance(unblocked.winner)
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
-    if not appearance_clear and judge_appearance is not None \
-            and decide(fits, given, p.rule, stable=stable).status != "ambiguous":  # the appearance alone blocks it
-        verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=judge_appearance(verdict.winner))
     chosen = given if given is not None else verdict.winner
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),

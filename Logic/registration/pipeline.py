@@ -248,8 +248,7 @@ class CarmRegLogic:
         a.scores.pop("at_clicks_with_winner", None)
         if cp is None or a.orientation != "as-stored" or list(winner.labels) in [list(lb) for lb in cp.labels]:
             return a.trusted
-        contexts = {polarity: self._fit_context(state, self._polarity_image(state, polarity, cp.dark_storage),
-                                                0.0, 0.0) for polarity in POLARITIES}
+        contexts = self._polarity_contexts(state, cp.dark_storage)
         planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
         self._report("levels", 0.99, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
         extended = judged_also(contexts, cp, planned, p.identify.rule)
@@ -279,10 +278,7 @@ class CarmRegLogic:
         if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
             return None
         dark_storage = better_storage(gc_by_storage)
-        contexts = {}
-        for polarity in POLARITIES:
-            contexts[polarity] = self._fit_context(state, self._polarity_image(state, polarity, dark_storage),
-                                                   0.0, 0.0)
+        contexts = self._polarity_contexts(state, dark_storage)
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
 
         def progress(done: int, total: int) -> None:
@@ -301,6 +297,12 @@ class CarmRegLogic:
         if checked is not None and state.parameters.metric == "gc":
             return checked.maps[a.polarity].reshape(-1)
         return None
+
+    def _polarity_contexts(self, state: RegistrationState, dark_storage: str) -> dict:
+        """{polarity: FitContext} on the X-ray converted as that polarity (``_polarity_image``), without a progress
+        hook: where the polarity checks (at the clicks, and without clicks) register."""
+        return {polarity: self._fit_context(state, self._polarity_image(state, polarity, dark_storage), 0.0, 0.0)
+                for polarity in POLARITIES}
 
     @staticmethod
     def _polarity_image(state: RegistrationState, polarity: str, dark_storage: str) -> np.ndarray:
@@ -337,14 +339,13 @@ class CarmRegLogic:
         dark_storage = better_storage(gc_by_storage)
         rows, cols = db.drrs.shape[2:]
         mask_coarse = bin_mask(state.mask, state.coarse_factor)[:rows, :cols]
-        contexts, starts, maps = {}, {}, {}
-        for polarity in POLARITIES:
-            line = self._polarity_image(state, polarity, dark_storage)
+        contexts = self._polarity_contexts(state, dark_storage)
+        starts, maps = {}, {}
+        for polarity, ctx in contexts.items():
             known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
-            maps[polarity] = spatial_search(db, bin_image(line, state.coarse_factor)[:rows, :cols], mask_coarse,
-                                            p.metric, (p.metric,), known=known).maps[p.metric]
+            coarse = bin_image(ctx.xray_line_integral, state.coarse_factor)[:rows, :cols]
+            maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
             starts[polarity] = peak_starts(maps[polarity], db.ty_mm, db.tz_mm, db.tx_mm, p.identify.image_starts)
-            contexts[polarity] = self._fit_context(state, line, 0.0, 0.0)
 
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
