@@ -179,6 +179,19 @@ def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sd
                     task // rows, task % rows)
 
 
+@njit(parallel=True)
+def _copy_strided(view, out):
+    """out[...] = view[...] for a 3-D strided view into a C-ordered array (the same numbers: a copy, with a cast
+    to ``out``'s dtype rounding as numpy's does). numpy copies a transposed volume element by element in
+    the worst order for the cache (0.5-0.6 s for a 360 x 269 x 133 CT here); this runs over the first output
+    axis in parallel with the last one contiguous (25-45 ms)."""
+    n0, n1, n2 = view.shape
+    for i in numba.prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                out[i, j, k] = view[i, j, k]
+
+
 _layout_cache: dict[tuple[int, tuple[int, int, int]], tuple[weakref.ref, np.ndarray]] = {}
 _layout_lock = threading.Lock()
 _LAYOUT_CACHE_SIZE = 4
@@ -203,7 +216,9 @@ def transposed_mu(mu: np.ndarray, perm: tuple[int, int, int]) -> np.ndarray:
         if hit is not None and hit[0]() is mu:
             _layout_cache[key] = _layout_cache.pop(key)  # most recently used last
             return hit[1]
-    copy = np.ascontiguousarray(np.transpose(mu, perm), dtype=np.float32)
+    view = np.transpose(mu, perm)
+    copy = np.empty(view.shape, np.float32)
+    _copy_strided(view, copy)
     with _layout_lock:
         for stale in [k for k, (ref, _) in _layout_cache.items() if ref() is None]:
             del _layout_cache[stale]

@@ -158,17 +158,15 @@ class CarmPose:
 
 
 def rotation_matrix(axis: np.ndarray, angle_deg) -> np.ndarray:
-    """Right-handed rotation(s) about a unit ``axis`` by ``angle_deg`` (scalar or (n,)). Returns (..., 3, 3)."""
+    """Right-handed rotation(s) about a unit ``axis`` by ``angle_deg`` (scalar or (n,)). Returns (..., 3, 3).
+
+    Rodrigues: R = cos(a) I + (1 - cos(a)) n n^T + sin(a) [n]_x, with [n]_x the cross-product matrix of n."""
     a = np.deg2rad(np.asarray(angle_deg, dtype=np.float64))
     x, y, z = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    c, s = np.cos(a), np.sin(a)
-    C = 1.0 - c
-    r = np.stack([
-        np.stack([c + x * x * C, x * y * C - z * s, x * z * C + y * s], -1),
-        np.stack([y * x * C + z * s, c + y * y * C, y * z * C - x * s], -1),
-        np.stack([z * x * C - y * s, z * y * C + x * s, c + z * z * C], -1),
-    ], -2)
-    return r
+    c, s = np.cos(a)[..., None, None], np.sin(a)[..., None, None]
+    outer = np.array([[x * x, x * y, x * z], [y * x, y * y, y * z], [z * x, z * y, z * z]])
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return c * np.eye(3) + (1.0 - c) * outer + s * cross
 
 
 def motion_rotation(rx_deg, ry_deg, rz_deg) -> np.ndarray:

@@ -80,7 +80,7 @@ def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
 
 
 def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,
-                          names_follow_clicks: bool) -> ClickOrientation:
+                          names_follow_clicks: bool, memo: dict | None = None) -> ClickOrientation:
     """Register every labelling of ``judged`` (the polarity check's registrations under the polarity used, as
     stored) on each rival orientation; each orientation's score is its best (module docstring).
     ``contexts``: {orientation: FitContext} on that orientation of the X-ray (``oriented_context``);
@@ -88,11 +88,22 @@ def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int]
     docstring); ``rule``: the level confidence rule, whose landmark limit says whether a rival's registration
     keeps the clicks fitted as well as the stored one's. A labelling whose clicks cannot be fitted within the
     rule's cap even by the landmarks alone is not refined; an orientation with none refined scores nan (on a
-    correctly displayed image, a turn of 90 degrees lays the spine across the detector)."""
+    correctly displayed image, a turn of 90 degrees lays the spine across the detector).
+
+    ``memo``: registrations of an earlier check on the same image (the caller keeps one dict per attenuation
+    image), reused and extended: a registration is seeded, so the same labelling on the same orientation gives
+    the same fit (the levels stage judges the orientation again with its winner added)."""
     best = max(judged, key=lambda f: f.similarity)
     scores, mpde = {"as-stored": float(best.similarity)}, {"as-stored": float(best.mpde_mm)}
+    memo = {} if memo is None else memo
     for name, ctx in contexts.items():
-        fits = [_registered_turned(ctx, f, name, size_px, rule, names_follow_clicks) for f in judged]
+        fits = []
+        for f in judged:
+            key = (name, tuple(f.labels), f.shift, np.asarray(f.uv_px, float).tobytes(),
+                   np.asarray(f.points_lps_mm, float).tobytes(), names_follow_clicks)
+            if key not in memo:
+                memo[key] = _registered_turned(ctx, f, name, size_px, rule, names_follow_clicks)
+            fits.append(memo[key])
         refined = [f for f in fits if f.refined]
         top = max(refined, key=lambda f: f.similarity) if refined else min(fits, key=lambda f: f.fine.mpde_mm)
         scores[name] = float(top.similarity)  # nan: no labelling's clicks could be fitted on it

@@ -320,8 +320,10 @@ class CarmRegLogic:
         base = self._fit_context(state, state.xray_line_integral, 0.0, 0.0)
         contexts = {o: oriented_context(base, o) for o in rival_orientations(a.orientation_scores)}
         self._report(stage, 0.95, "judging the display's orientation at the clicks")
+        memo = state.turned_fits.setdefault((a.polarity, a.storage), {})  # the image the contexts show
         evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
-                                         state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named)
+                                         state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named,
+                                         memo=memo)
         a.set_orientation_at_clicks(evidence.as_dict(), clear_gc)
 
     def _fit_context(self, state: RegistrationState, line_integral: np.ndarray, ty_mm: float, tz_mm: float,

@@ -98,6 +98,7 @@ class RegistrationState:
     known_gc: np.ndarray | None = None      # GC of the chosen conversion with every DRR, if already computed
     click_polarity: ClickPolarity | None = None  # the polarity check's registrations at the clicks (spatial stage)
     image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
+    turned_fits: dict = field(default_factory=dict)  # the orientation check's registrations, per (polarity, storage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
@@ -163,6 +164,7 @@ def drop_results_from(state: RegistrationState, name: str) -> None:
         state.appearance = initial_appearance(state.xray, state.parameters)
         state.xray_line_integral = attenuation(state.xray.pixels, state.mask, state.appearance.bone_dark,
                                                state.appearance.storage)
+        state.turned_fits = {}
     state.stages = [s for s in state.stages if s.name not in later]
 
 

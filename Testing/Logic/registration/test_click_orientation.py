@@ -134,3 +134,34 @@ def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_
                           geometry, tmp_path_factory, ("mirrored-left-right", "turned-180"))
     assert upside_down.fitted["turned-180"]
     assert upside_down.scores["turned-180"] >= upside_down.scores["as-stored"] + REFUSE_ORIENTATION_AT_CLICKS_GC
+
+
+@pytest.mark.slow
+def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again(sample_ct, case, tmp_path_factory,
+                                                                                 monkeypatch):
+    """The levels stage judges the orientation again with its winner added: the labellings the spatial stage already
+    registered on each rival are reused (a registration is seeded: the same inputs give the same fit), so the
+    second judgement, with nothing added, registers nothing and finds the same evidence."""
+    import carmreg.logic.registration.click_orientation as click_orientation
+
+    sim, geometry = case
+    ct, _, centroids = sample_ct
+    xray = XrayImage(sim.pixels.astype(np.float32).copy(), geometry.intrinsics, geometry.sod_mm, True, "test")
+    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, Landmarks2D(list(sim.clicks.labels), sim.clicks.uv_px), p)
+    for stage in ("database", "spatial"):
+        logic.run_stage(state, stage)
+    a = state.appearance
+    first = dict(a.orientation_at_clicks)
+    memo = state.turned_fits[(a.polarity, a.storage)]
+    assert len(memo) == len(first["labels"]) * (len(first["scores"]) - 1)  # every judged labelling, every rival
+    calls = []
+    real = click_orientation._registered_turned
+    monkeypatch.setattr(click_orientation, "_registered_turned", lambda *args: calls.append(args) or real(*args))
+    logic._orientation_at_clicks(state, "spatial")
+    assert calls == []
+    assert repr(a.orientation_at_clicks) == repr(first)  # nan (an orientation nothing could be fitted on) too
+
+    logic.run_stage(state, "database")  # a re-run of the spatial stage starts afresh
+    assert state.turned_fits == {}
