@@ -64,7 +64,11 @@ def counts(runs: list[dict], threshold: float) -> dict:
 
 def choose(tune: list[dict]) -> float:
     """Fewest clear and wrong verdicts, then most clear and right ones, then the lower threshold."""
-    return min(GRID, key=lambda t: (counts(tune, t)["clear_wrong"], -counts(tune, t)["clear_right"], t))
+    def rank(threshold: float) -> tuple:
+        c = counts(tune, threshold)
+        return c["clear_wrong"], -c["clear_right"], threshold
+
+    return min(GRID, key=rank)
 
 
 def main(argv=None) -> int:
