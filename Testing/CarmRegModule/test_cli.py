@@ -1,6 +1,10 @@
-"""The command line on real data: `carmreg drr` and `carmreg simulate` on the sample CT (in-process)."""
+"""The command line on real data: `carmreg drr` and `carmreg simulate` on the sample CT (in-process), and the
+installed `carmreg` script as a real process."""
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import nrrd
 import numpy as np
@@ -33,6 +37,24 @@ def test_drr_writes_png_and_nrrd_whose_geometry_matches(sample_case_dir, tmp_pat
     assert 0.5 < data.mean() < 20  # line integrals of a body, dimensionless
     normal = steps[2] / np.linalg.norm(steps[2])  # the one-slice axis: the detector normal, away from the source
     assert np.dot(normal, point - source) > 0 and abs(np.dot(normal, steps[0])) < 1e-9
+
+
+def test_the_installed_script_ends_at_once_with_its_output_flushed_and_its_files_whole(sample_case_dir, tmp_path):
+    """``carmreg.cli.run`` ends a windowless command with ``os._exit``: what it printed must still reach a pipe,
+    the exit code must be main's, and the files it wrote must be whole."""
+    script = Path(sys.executable).with_name("carmreg")
+    if not script.is_file():
+        pytest.skip(f"the console script {script} is not installed (pip install -e .)")
+    done = subprocess.run([str(script), "drr", "--ct", str(sample_case_dir / "ct.nrrd"), "--out", str(tmp_path / "d"),
+                           "--size-px", "64", "48", "--pixel-spacing-mm", "4.0"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stderr == ""
+    assert done.stdout.startswith("DRR 64x48 px") and done.stdout.endswith(f"{tmp_path / 'd.nrrd'}\n")
+    data, _ = nrrd.read(str(tmp_path / "d.nrrd"))
+    assert data.shape == (64, 48, 1) and np.isfinite(data).all() and data.max() > 0.5
+    refused = subprocess.run([str(script), "drr", "--out", str(tmp_path / "e"), "--size-px", "1", "48"],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.startswith("carmreg: error: --size-px 1 48")
 
 
 @pytest.mark.slow
