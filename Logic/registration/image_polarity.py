@@ -5,17 +5,17 @@ The database's verdict (``appearance.polarity_scores``) compares the image with 
 and at one depth, and can be clearly wrong (the appearance benchmark's second CT: every image-intensifier variant
 inverted). Without clicks the image alone must find where the CT lies, exactly as the no-click level answer does
 (``levels.identify_from_image``): for each polarity p, the image converted as p (bone dark with ``dark_storage``),
-its spatial map's ``count`` best peaks (``levels.peak_starts``) each refined on the image alone (the wide coarse
-refinement, no landmark term)::
+its spatial map's ``count`` best peaks, swept over the C-arm's rotation in the image plane (``image_starts``), each
+refined on the image alone (the wide coarse refinement, no landmark term)::
 
     score(p) = max_s GC_refined(s, p)        (s the peaks of p's spatial map)
 
 These are the no-click answer's own starts (same image, same map, same refinement), so the polarity is judged on
 the same search the answer uses, and ``identify_from_image`` reuses the chosen polarity's refinements
-(``registered=``): the check costs the other polarity's refinements only. It does not find every pose: on the
-second CT's intensifier images no peak of the right polarity's map lies near the true pose (report case 5: its
-three refine to GC 0.35, 0.38, 0.24, the wrong polarity's to 0.46, while where the clicks put the CT the right one
-reaches 0.54), so without clicks their polarity stays inverted (README, appearance benchmark).
+(``registered=``): the check costs the other polarity's refinements only. It is only as good as its starts: on
+the second CT's intensifier images, before the in-plane sweep, no peak of the right polarity's map lay near the
+true pose (report case 5: its three refined to GC 0.35, 0.38, 0.24, the wrong polarity's to 0.46, while the true
+pose has 0.54), so without clicks their polarity was inverted (README, appearance benchmark).
 Frames and units as in ``labelling_fit``.
 """
 
@@ -35,7 +35,7 @@ class ImagePolarity:
     scores: dict            # {polarity: max refined GC over its starts}
     starts: dict            # {polarity: [(6,) start pose]}
     registered: dict        # {polarity: [LabellingFit refined from the start of the same index]}
-    maps: dict              # {polarity: (ny, nz) spatial map the starts are the peaks of}
+    maps: dict              # {polarity: (ny, nz) spatial map (no in-plane turn) the starts' sweep began with}
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores),

@@ -28,8 +28,8 @@ among them, and the appearance alone keeps the verdict from standing, the pipeli
 winner too (``judge_appearance``; seen: the chest case above, right but ambiguous in 8 of 8 runs because its
 polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine).
 
-No clicks: ``identify_from_image`` refines the spatial map's best peaks on the image alone and challenges the
-best with its pose moved one level up and down; the answer is only ever **proposed**.
+No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
+challenges the best with its pose moved one level up and down; the answer is only ever **proposed**.
 
 Every level a labelling names differs from the winner's (a shift renames every click), so the per-level margin
 equals the labelling's margin.
@@ -73,7 +73,7 @@ from carmreg.logic.registration.level_confidence import (
 class IdentifyParameters:
     candidates: int = 5                     # unnamed clicks: labellings registered first (most plausible)
     max_shift: int = 2                      # named clicks: shifts tried each way
-    image_starts: int = 3                   # no clicks: spatial-map peaks refined
+    image_starts: int = 3                   # no clicks: spatial-map peaks refined (``image_starts``)
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
 
@@ -241,24 +241,6 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
 
 # ----------------------------------------------------------------------------------------------- no clicks
 
-def spatial_peaks(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, count: int,
-                  min_separation_mm: float = 12.0) -> list[tuple[float, float]]:
-    """The ``count`` best local maxima (ty, tz) of a spatial similarity map, at least ``min_separation_mm`` apart."""
-    from scipy import ndimage
-
-    finite = np.where(np.isfinite(score_map), score_map, -np.inf)
-    peaks = np.argwhere(finite == ndimage.maximum_filter(finite, size=3, mode="nearest"))
-    peaks = sorted(peaks.tolist(), key=lambda ij: -finite[ij[0], ij[1]])
-    out: list[tuple[float, float]] = []
-    for iy, iz in peaks:
-        ty, tz = float(ty_mm[iy]), float(tz_mm[iz])
-        if all(np.hypot(ty - a, tz - b) >= min_separation_mm for a, b in out):
-            out.append((ty, tz))
-        if len(out) == count:
-            break
-    return out
-
-
 def central_level(geometry: CarmGeometry, pose: np.ndarray, ct: Landmarks3D) -> str:
     """The CT level whose projection is nearest the principal point at ``pose``."""
     uv = project(geometry.projection_matrix(pose), ct.points_lps_mm)
@@ -288,17 +270,11 @@ def _level_step(ct: Landmarks3D, label: str, step: int) -> np.ndarray | None:
     return m[names[j]] - m[label]
 
 
-def peak_starts(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, tx_mm: float, count: int
-                ) -> list[np.ndarray]:
-    """(6,) start poses at the ``count`` best peaks of a spatial map (``spatial_peaks``), no rotation."""
-    return [np.array([tx_mm, ty, tz, 0.0, 0.0, 0.0]) for ty, tz in spatial_peaks(score_map, ty_mm, tz_mm, count)]
-
-
-def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray, ty_mm: np.ndarray,
-                        tz_mm: np.ndarray, tx_mm: float, params: IdentifyParameters | None = None,
+def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: IdentifyParameters | None = None,
                         appearance_clear: bool = True, registered: list | tuple = ()) -> LevelIdentification:
-    """No clicks: refine from the best peaks of the spatial map on the image alone, then challenge the winner
-    with its pose moved one level up and down along the spine (the look-alike neighbours); decide as above.
+    """No clicks: refine from ``starts`` ((6,) poses: the spatial map's best peaks, ``image_starts``) on the image
+    alone, then challenge the winner with its pose moved one level up and down along the spine (the look-alike
+    neighbours); decide as above.
     A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py).
     ``registered``: (start, fit) already refined on this very image (the polarity check without clicks,
     ``image_polarity``); a peak with the same start takes a copy of that fit instead of refining again."""
@@ -308,7 +284,6 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, score_map: np.ndarray,
         done = next((f for s, f in registered if np.array_equal(s, start) and f.refined), None)
         return None if done is None else dataclasses.replace(done, labels=list(done.labels), runs=list(done.runs))
 
-    starts = peak_starts(score_map, ty_mm, tz_mm, tx_mm, p.image_starts)
     hypotheses = [reused(s) or unlabelled_fit(ctx, s) for s in starts]
     challenged: set[str] = set()
     while True:  # challenge the best with its pose one level up and down, until the best has been challenged

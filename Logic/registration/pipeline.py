@@ -66,13 +66,13 @@ from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
 from carmreg.logic.registration.image_refine import intensity_refine
+from carmreg.logic.registration.image_starts import image_starts
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, plan_labelling
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
     identify_from_image,
     identify_levels,
-    peak_starts,
     plan_contest,
 )
 from carmreg.logic.registration.outcome import build_result
@@ -347,7 +347,7 @@ class CarmRegLogic:
             known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
             coarse = bin_image(ctx.xray_line_integral, state.coarse_factor)[:rows, :cols]
             maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
-            starts[polarity] = peak_starts(maps[polarity], db.ty_mm, db.tz_mm, db.tx_mm, p.identify.image_starts)
+            starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
 
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
@@ -412,9 +412,8 @@ class CarmRegLogic:
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             reuse = state.image_polarity.pairs(state.appearance.polarity) if state.image_polarity else ()
-            ident = identify_from_image(ctx, state.ct_landmarks, state.spatial.maps[p.metric],
-                                        state.database.ty_mm, state.database.tz_mm, state.database.tx_mm,
-                                        p.identify, appearance_clear, registered=reuse)
+            ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
+                                        appearance_clear, registered=reuse)
         else:
             ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
                                     registered=self._registered_at_clicks(state),
@@ -428,6 +427,18 @@ class CarmRegLogic:
             state.warnings.append(ident.message)
         # the answer itself is the result's level_check (result.json "level_check"), not repeated here
         return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits)}
+
+    @staticmethod
+    def _image_starts(state: RegistrationState) -> list:
+        """No clicks: where the search on the image alone starts (``image_starts``) on the X-ray as converted: the
+        polarity check's own starts when it judged the polarity in use (the same image, so its refinements are
+        reused), else computed here (a polarity the user set)."""
+        checked, p, db = state.image_polarity, state.parameters, state.database
+        if checked is not None and state.appearance.polarity in checked.starts:
+            return list(checked.starts[state.appearance.polarity])
+        rows, cols = db.drrs.shape[2:]
+        return image_starts(db, bin_image(state.xray_line_integral, state.coarse_factor)[:rows, :cols],
+                            bin_mask(state.mask, state.coarse_factor)[:rows, :cols], p.identify.image_starts)
 
     @staticmethod
     def _registered_at_clicks(state: RegistrationState) -> list:

@@ -136,7 +136,8 @@ class GradientCorrelation:
     def __init__(self, fixed: np.ndarray, mask: np.ndarray):
         inner = ndimage.binary_erosion(mask, np.ones((3, 3), bool))  # border_value 0: never an image edge
         self.index, self.width = np.flatnonzero(inner), mask.shape[1]
-        self.fixed_u, self.fixed_v = (_zscore(g)[0] for g in self._derivatives(fixed[None]))
+        self.fixed_u, self.fixed_v = ((_zscore(g)[0] for g in self._derivatives(fixed[None])) if self.index.size
+                                      else (np.zeros(0), np.zeros(0)))  # nothing to compare: every score is 0
 
     def _derivatives(self, stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(2 du, 2 dv) at the inner pixels, (n, m) each."""
@@ -152,6 +153,30 @@ class GradientCorrelation:
 
 def gc(fixed, moving, mask):
     return GradientCorrelation(fixed, mask)(moving)
+
+
+def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, chunk: int = 512) -> np.ndarray:
+    """(n, k) GC of every moving image (n, h, w) with every fixed image (k, h, w) on one ``mask``: column j is
+    ``gc(fixed[j], moving, mask)`` up to the order of float sums, the moving images' derivatives taken once for
+    all k (a GC map over a DRR database for k turns of the X-ray costs about one map)."""
+    prepared = [GradientCorrelation(f, mask) for f in np.asarray(fixed, np.float32)]
+    if prepared[0].index.size == 0:
+        return np.zeros((len(moving), len(prepared)))
+    fixed_u = np.stack([g.fixed_u for g in prepared], axis=1)  # (m, k) unit columns
+    fixed_v = np.stack([g.fixed_v for g in prepared], axis=1)
+    out = []
+    for i in range(0, len(moving), chunk):
+        mu, mv = prepared[0]._derivatives(np.asarray(moving[i:i + chunk], np.float32))
+        out.append(0.5 * (_correlation_each(mu, fixed_u) + _correlation_each(mv, fixed_v)))
+    return np.concatenate(out).astype(np.float64)
+
+
+def _correlation_each(values: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """(n, k) Pearson correlation of each row of ``values`` (n, m) with each unit column of ``units`` (m, k)
+    (``_correlation`` for k columns at once)."""
+    centred = values - values.mean(axis=1, keepdims=True)
+    norm = np.linalg.norm(centred, axis=1)[:, None]
+    return np.divide(centred @ units, norm, out=np.zeros((len(values), units.shape[1])), where=norm > 1e-12)
 
 
 def go(fixed, moving, mask):

@@ -20,7 +20,7 @@ from carmreg.logic.registration.labellings import (
     shifted_labels,
 )
 from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence, decide, decide_image_only, judge
-from carmreg.logic.registration.levels import central_level, spatial_peaks, visible_levels
+from carmreg.logic.registration.levels import central_level, visible_levels
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.simulation.evaluation import evaluate
 
@@ -228,14 +228,6 @@ def test_image_only_answers_are_at_best_proposed():
     assert decide_image_only([a, b], RULE).status == "proposed"
     assert decide_image_only([a, _h([], 0.51)], RULE).status == "ambiguous"
     assert decide_image_only([a, b], RULE, appearance_clear=False).status == "ambiguous"
-
-
-def test_spatial_peaks_are_separated_local_maxima_best_first():
-    ty, tz = np.arange(-10.0, 12.0, 2.0), np.arange(-40.0, 42.0, 2.0)
-    yy, zz = np.meshgrid(ty, tz, indexing="ij")
-    score = np.exp(-((yy - 2) ** 2 + (zz - 10) ** 2) / 20) + 0.8 * np.exp(-((yy + 4) ** 2 + (zz + 16) ** 2) / 20)
-    peaks = spatial_peaks(score, ty, tz, 3)
-    assert peaks[:2] == [(2.0, 10.0), (-4.0, -16.0)]
 
 
 def test_central_and_visible_levels_follow_the_projection():
