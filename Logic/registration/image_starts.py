@@ -16,7 +16,7 @@ pixel interpolates exposed pixels only, turned by each a, nearest, and intersect
     S(ty, tz) = max_a  GC(turn_a(X), DRR(ty, tz)),       a*(ty, tz) = its argmax
 
 One field makes the DRRs' half of GC the same for every turn (``metrics.gc_against_each``): the seven turns cost
-about one GC map over the database (0.5-0.9 s for the chest CT's 7,650 DRRs here, against 4.7-6.4 s turn by turn).
+about one GC map over the database (0.3 s for the chest CT's 7,650 DRRs here, against 4.7-6.4 s turn by turn).
 
 The X-ray turned by a matching DRR(ty, tz) is the pose (ty, tz, rx = -a): the C-arm turns about its moved
 isocentre, which lies on the principal ray, so the anatomy at the principal point stays put
@@ -82,5 +82,5 @@ def image_starts(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarr
     starts = []
     for ty, tz in spatial_peaks(best, db.ty_mm, db.tz_mm, count):
         iy, iz = int(np.argmin(np.abs(db.ty_mm - ty))), int(np.argmin(np.abs(db.tz_mm - tz)))
-        starts.append(np.array([db.tx_mm, ty, tz, 0.0 - angle[iy, iz], 0.0, 0.0]))
+        starts.append(np.array([db.tx_mm, ty, tz, 0.0 - angle[iy, iz], 0.0, 0.0]))  # 0.0 - a: never -0.0
     return starts
