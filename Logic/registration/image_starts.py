@@ -11,7 +11,8 @@ refinements reached GC 0.38, where the true pose has 0.54) and lost to the wrong
 So the coarse X-ray is turned in the image plane by each angle a of ``IN_PLANE_DEG`` (about the image centre:
 ``scipy.ndimage.rotate``, linear) and scored against every DRR by gradient correlation (the refinement's metric)
 on one field for every turn, the pixels exposed whichever the turn (the field shrunk by 2 pixels, so that a turned
-pixel interpolates exposed pixels only, turned by each a, nearest, and intersected)::
+pixel interpolates exposed pixels only, turned by each a, nearest, and intersected; a field too small to keep a
+pixel that way is scored without a turn)::
 
     S(ty, tz) = max_a  GC(turn_a(X), DRR(ty, tz)),       a*(ty, tz) = its argmax
 
@@ -69,7 +70,10 @@ def turned_maps(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarra
             common &= ndimage.rotate(inner, a, reshape=False, order=0) > 0
     turned = np.stack([ndimage.rotate(xray_coarse, a, reshape=False, order=1) if a else xray_coarse
                        for a in angles_deg])
-    scores = gc_against_each(turned, db.drrs.reshape(ny * nz, rows, cols), common)  # (ny nz, k)
+    drrs = db.drrs.reshape(ny * nz, rows, cols)
+    scores = gc_against_each(turned, drrs, common)  # (ny nz, k)
+    if not scores.any():  # a field too small to survive the turns: the map without a turn, on the whole field
+        angles_deg, scores = (0.0,), gc_against_each(xray_coarse[None], drrs, field)
     best = scores.argmax(axis=1)
     return (scores[np.arange(len(scores)), best].reshape(ny, nz),
             np.asarray(angles_deg, float)[best].reshape(ny, nz))

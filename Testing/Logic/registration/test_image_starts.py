@@ -75,3 +75,14 @@ def test_the_turned_field_is_the_one_every_turn_exposes(grid_of_drrs):
     outside[~field] = 1e3  # nothing outside the field may count, whatever the turn
     np.testing.assert_array_equal(turned_maps(db, outside, field)[0], turned_maps(db, xray, field)[0])
     assert 0.0 in IN_PLANE_DEG and max(IN_PLANE_DEG) == -min(IN_PLANE_DEG) == 9.0
+
+
+def test_a_field_too_small_for_the_turns_is_scored_without_a_turn(grid_of_drrs):
+    level, geometry, db = grid_of_drrs
+    xray = render_line_integrals(level, geometry, np.array([0.0, -4.0, 4.0, 0.0, 0.0, 0.0]))
+    field = np.zeros(xray.shape, bool)
+    field[28:35, 28:35] = True  # 7 x 7 px: nothing is left once shrunk by 2 and turned by 9 degrees
+    best, angle = turned_maps(db, xray, field)
+    plain = gc(xray, db.drrs.reshape(-1, *xray.shape), field).reshape(best.shape)
+    np.testing.assert_allclose(best, plain, atol=1e-5)
+    assert np.all(angle == 0.0) and np.ptp(best) > 0.1
