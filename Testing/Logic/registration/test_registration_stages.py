@@ -72,6 +72,24 @@ def test_gc_is_the_mean_correlation_of_the_two_derivative_images_inside_the_erod
     assert similarity("gc", fixed, 3.0 - 2.0 * moving, mask, dtype=np.float64) == pytest.approx(-scores, abs=1e-12)
 
 
+def test_gc_derivatives_are_the_differences_of_two_gathers_bit_for_bit():
+    """The prepared GC takes its central differences over whole rows and gathers the inner pixels once: the same
+    numbers, dtype and memory layout as the differences of two gathers, so every recorded score repeats."""
+    from carmreg.logic.similarity.metrics import GradientCorrelation
+
+    rng = np.random.default_rng(2)
+    stack = rng.normal(size=(5, 37, 41)).astype(np.float32)
+    yy, xx = np.mgrid[:37, :41]
+    field = (yy - 18) ** 2 + (xx - 20) ** 2 < 17 ** 2
+    gc = GradientCorrelation(stack[0], field)
+    flat, i = stack.reshape(5, -1), gc.index
+    du, dv = gc._derivatives(stack)
+    for new, old in ((du, flat[:, i + 1] - flat[:, i - 1]), (dv, flat[:, i + 41] - flat[:, i - 41])):
+        np.testing.assert_array_equal(new, old)
+        assert new.strides == old.strides and new.dtype == old.dtype == np.float32
+    assert du.shape == (5, i.size) and i.size > 500
+
+
 def test_depth_search_recovers_magnification_from_intervertebral_distances():
     true_pose = [35.0, 4.0, -6.0, 0, 0, 0]
     result = depth_search(GEOMETRY, 4.0, -6.0, SPINE_LPS_MM[2:5], _clicks(true_pose))
