@@ -39,10 +39,10 @@ def _zscore(values: np.ndarray) -> np.ndarray:
 
 def _correlation(values: np.ndarray, unit: np.ndarray) -> np.ndarray:
     """Pearson correlation of each row of ``values`` (n, m) with ``unit`` (m,), already zero-mean and unit-norm
-    (``_zscore``); 0 for a constant row."""
+    (``_zscore``), -> (n,); or with each such column of ``unit`` (m, k) -> (n, k). 0 for a constant row."""
     centred = values - values.mean(axis=1, keepdims=True)
-    norm = np.linalg.norm(centred, axis=1)
-    return np.divide(centred @ unit, norm, out=np.zeros(len(values)), where=norm > 1e-12)
+    norm = np.linalg.norm(centred, axis=1).reshape((-1,) + (1,) * (unit.ndim - 1))
+    return np.divide(centred @ unit, norm, out=np.zeros((len(values),) + unit.shape[1:]), where=norm > 1e-12)
 
 
 def _unit_range(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -171,16 +171,8 @@ def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, chu
     out = []
     for i in range(0, len(moving), chunk):
         mu, mv = prepared[0]._derivatives(np.asarray(moving[i:i + chunk], np.float32))
-        out.append(0.5 * (_correlation_each(mu, fixed_u) + _correlation_each(mv, fixed_v)))
+        out.append(0.5 * (_correlation(mu, fixed_u) + _correlation(mv, fixed_v)))
     return np.concatenate(out).astype(np.float64)
-
-
-def _correlation_each(values: np.ndarray, units: np.ndarray) -> np.ndarray:
-    """(n, k) Pearson correlation of each row of ``values`` (n, m) with each unit column of ``units`` (m, k)
-    (``_correlation`` for k columns at once)."""
-    centred = values - values.mean(axis=1, keepdims=True)
-    norm = np.linalg.norm(centred, axis=1)[:, None]
-    return np.divide(centred @ units, norm, out=np.zeros((len(values), units.shape[1])), where=norm > 1e-12)
 
 
 def go(fixed, moving, mask):
