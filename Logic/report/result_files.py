@@ -48,9 +48,12 @@ __all__ = ["RESULT_FILES", "result_dict", "save_png", "save_result", "to_uint8",
 def result_dict(result) -> dict:
     """JSON-ready summary of a RegistrationResult; a value that is not a finite number (a margin with no rival
     labelling to measure it against is inf) is written as null."""
-    import cma
     import numba
     import scipy
+
+    from carmreg.logic.registration.cma_search import import_cma
+
+    cma = import_cma()
 
     g = result.geometry
     intr = g.intrinsics
