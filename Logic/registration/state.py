@@ -55,6 +55,7 @@ class RegistrationParameters:
     level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
     identify: IdentifyParameters = field(default_factory=IdentifyParameters)
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
+    final_drr_rays_per_voxel: float = 2.0   # ... and no finer than this many rays per CT voxel at the isocentre
     max_fine_mpde_mm: float = 6.0           # fine-stage mPDE above this = failed check (clicks are ~1-3 mm)
     magnification_range: tuple = (1.05, 3.0)
     cache_dir: str | None = None
