@@ -98,8 +98,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask
-from carmreg.logic.similarity.metrics import similarity
+from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image, bin_mask
+from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
 CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores called clear (evidence when nothing was refined: a
@@ -184,7 +184,7 @@ class Appearance:
         self.scores["refined"] = again.scores.get("refined")
 
     def set_storage(self, gc_by_storage: dict) -> None:
-        """Record the best GC of each conversion (``storage_gc``) and, for a bone-dark image, use the
+        """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the
         better-agreeing one (module docstring)."""
         self.scores["storage"] = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
         if self.bone_dark:
@@ -251,28 +251,26 @@ def _coarse(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarra
     return bin_image(image, factor)[:rows, :cols]
 
 
-def polarity_scores(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
-    """{"bone-dark": max_k -GC(R, D_k), "bone-bright": max_k GC(R, D_k)}.
+def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> tuple[dict, dict]:
+    """The image against every database DRR, in one pass (``metrics.gc_maps``):
+
+    - polarity scores ``{"bone-dark": max_k -GC(R, D_k), "bone-bright": max_k GC(R, D_k)}`` of the rank image R;
+    - ``gc_by_storage``: GC of a bone-dark image converted as linear intensity (-log) or as a log display with every
+      DRR, ``{storage: (n,) scores}``; the chosen conversion's scores are the spatial stage's GC map.
 
     ``drrs``: (n, rows, cols) coarse DRRs (line integrals); ``factor``: detector binning to their pixel."""
     shape = drrs.shape[1:]
     coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
-    g = similarity("gc", _coarse(rank_image(pixels, mask), factor, shape), drrs, coarse_mask)
-    return {"bone-dark": float(np.max(-g)), "bone-bright": float(np.max(g))}
+    images = [_coarse(rank_image(pixels, mask), factor, shape)]
+    images += [_coarse(attenuation(pixels, mask, True, storage), factor, shape) for storage in STORAGES]
+    ranked, *stored = gc_maps(images, drrs, coarse_mask)
+    return ({"bone-dark": float(np.max(-ranked)), "bone-bright": float(np.max(ranked))},
+            dict(zip(STORAGES, stored, strict=True)))
 
 
 def better_storage(gc_by_storage: dict) -> str:
-    """The conversion of a bone-dark image whose best DRR agrees more (``storage_gc``; module docstring)."""
+    """The conversion of a bone-dark image whose best DRR agrees more (``database_gc``; module docstring)."""
     return max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))
-
-
-def storage_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> dict:
-    """GC of a bone-dark image, converted as linear intensity (-log) or as a log display, with every database DRR:
-    {storage: (n,) scores}; the chosen conversion's scores are the spatial stage's GC map."""
-    shape = drrs.shape[1:]
-    coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
-    return {storage: similarity("gc", _coarse(attenuation(pixels, mask, True, storage), factor, shape), drrs,
-                                coarse_mask) for storage in ("linear-intensity", "log-display")}
 
 
 def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarray, factor: int,
@@ -315,7 +313,7 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
                     header_source: str, storage: dict | None = None, header_explicit: bool = False,
                     refined_by: str = REFINED_AT_DATABASE_POSES, fits: dict | None = None) -> Appearance:
     """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
-    the ``storage_gc`` when known (else see ``Appearance.set_storage``); ``header_explicit``: the file states its
+    the ``database_gc`` when known (else see ``Appearance.set_storage``); ``header_explicit``: the file states its
     polarity (rather than a default for its type); ``refined_by``: where the ``refined`` scores were measured
     (``REFINED_AT_DATABASE_POSES``, or ``REFINED_AT_CLICKS`` with ``fits``: {polarity: the best registration
     keeps the clicks fitted})."""

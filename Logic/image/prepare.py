@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import numpy as np
 
+STORAGES = ("linear-intensity", "log-display")
+"""How a bone-dark image can be stored (``attenuation``); ``appearance`` finds which."""
+
 
 def attenuation(pixels: np.ndarray, mask: np.ndarray, bone_dark: bool = True,
                 storage: str = "linear-intensity") -> np.ndarray:
     """Line-integral-like image (bone bright) from stored pixels (module docstring); 0 outside the field.
-    ``storage`` matters for bone-dark images only: "linear-intensity" or "log-display"."""
+    ``storage`` matters for bone-dark images only: one of ``STORAGES``."""
     img = np.asarray(pixels, np.float64)
     inside = img[mask]
     lo, hi = np.percentile(inside, [0.5, 99.5])

@@ -1,6 +1,6 @@
 """The X-ray's polarity judged where the clicks put the CT (beyond the paper; ``image.appearance`` polarity).
 
-The database's verdict (``appearance.polarity_scores``) compares the image with DRRs at poses without rotation
+The database's verdict (``appearance.database_gc``) compares the image with DRRs at poses without rotation
 and at one depth. On a CT whose DRRs carry strong features of their own (a narrow, truncated reconstruction) a
 correlation of the *wrong* sign at a wrong pose can beat the right sign at the nearest grid pose: measured on the
 appearance benchmark's second CT, where the database said the opposite of the truth on every image-intensifier

@@ -1,7 +1,7 @@
 """The X-ray's polarity judged without clicks, where the image alone puts the CT (beyond the paper;
 ``image.appearance`` polarity, ``click_polarity`` for the same with clicks).
 
-The database's verdict (``appearance.polarity_scores``) compares the image with DRRs at poses without rotation
+The database's verdict (``appearance.database_gc``) compares the image with DRRs at poses without rotation
 and at one depth, and can be clearly wrong (the appearance benchmark's second CT: every image-intensifier variant
 inverted). Without clicks the image alone must find where the CT lies, exactly as the no-click level answer does
 (``levels.identify_from_image``): for each polarity p, the image converted as p (bone dark with ``dark_storage``),

@@ -43,10 +43,9 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
     better_storage,
+    database_gc,
     decide_polarity,
     orientation_scores,
-    polarity_scores,
-    storage_gc,
 )
 from carmreg.logic.image.field import field_mask
 from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor
@@ -215,8 +214,7 @@ class CarmRegLogic:
         p, xray = state.parameters, state.xray
         rows, cols = state.database.drrs.shape[2:]
         drrs = state.database.drrs.reshape(-1, rows, cols)
-        scores = polarity_scores(xray.pixels, state.mask, drrs, state.coarse_factor)
-        gc_by_storage = storage_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
+        scores, gc_by_storage = database_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
         refined, refined_by = None, REFINED_AT_DATABASE_POSES
         state.click_polarity = self._polarity_at_clicks(state, gc_by_storage)
         fits = None
@@ -306,7 +304,7 @@ class CarmRegLogic:
 
     @staticmethod
     def _known_gc(state: RegistrationState, gc_by_storage: dict) -> np.ndarray | None:
-        """The spatial stage's GC map when already computed: the chosen bone-dark conversion's (``storage_gc``),
+        """The spatial stage's GC map when already computed: the chosen bone-dark conversion's (``database_gc``),
         or the chosen polarity's map of the check without clicks."""
         a, checked = state.appearance, state.image_polarity
         if a.bone_dark:

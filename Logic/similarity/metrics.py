@@ -40,9 +40,20 @@ def _zscore(values: np.ndarray) -> np.ndarray:
 def _correlation(values: np.ndarray, unit: np.ndarray) -> np.ndarray:
     """Pearson correlation of each row of ``values`` (n, m) with ``unit`` (m,), already zero-mean and unit-norm
     (``_zscore``), -> (n,); or with each such column of ``unit`` (m, k) -> (n, k). 0 for a constant row."""
+    return _correlation_centred(*_centred(values), unit)
+
+
+def _centred(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``values`` (n, m) minus their means, and their norms (n,): ``_correlation``'s half that does not
+    depend on the unit vector (shared when one stack is correlated with several)."""
     centred = values - values.mean(axis=1, keepdims=True)
-    norm = np.linalg.norm(centred, axis=1).reshape((-1,) + (1,) * (unit.ndim - 1))
-    return np.divide(centred @ unit, norm, out=np.zeros((len(values),) + unit.shape[1:]), where=norm > 1e-12)
+    return centred, np.linalg.norm(centred, axis=1)
+
+
+def _correlation_centred(centred: np.ndarray, norm: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """``_correlation`` from ``_centred``'s rows and norms."""
+    norm = norm.reshape((-1,) + (1,) * (unit.ndim - 1))
+    return np.divide(centred @ unit, norm, out=np.zeros((len(centred),) + unit.shape[1:]), where=norm > 1e-12)
 
 
 def _unit_range(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -157,6 +168,28 @@ class GradientCorrelation:
 
 def gc(fixed, moving, mask):
     return GradientCorrelation(fixed, mask)(moving)
+
+
+def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, chunk: int = 512,
+            dtype=np.float32) -> list[np.ndarray]:
+    """``[similarity("gc", f, moving, mask, chunk, dtype) for f in fixed_images]`` bit for bit, with the moving
+    images' derivatives and their centring made once per chunk for every fixed image (each correlation is then the
+    same matrix-vector product as in ``similarity``): several GC maps over a DRR database for little more than
+    one."""
+    mask = np.asarray(mask, bool)
+    prepared = [GradientCorrelation(np.asarray(f, dtype=dtype), mask) for f in fixed_images]
+    shape = np.shape(fixed_images[0])
+    moving = np.asarray(moving, dtype=dtype).reshape(-1, *shape)
+    if prepared[0].index.size == 0:
+        return [np.zeros(len(moving)) for _ in prepared]
+    out = [[] for _ in prepared]
+    for i in range(0, len(moving), chunk):
+        mu, mv = prepared[0]._derivatives(moving[i:i + chunk])
+        centred_u, centred_v = _centred(mu), _centred(mv)
+        for scores, g in zip(out, prepared, strict=True):
+            scores.append(0.5 * (_correlation_centred(*centred_u, g.fixed_u) + _correlation_centred(*centred_v,
+                                                                                                  g.fixed_v)))
+    return [np.concatenate(scores).astype(np.float64) for scores in out]
 
 
 def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, chunk: int = 512) -> np.ndarray:

@@ -16,7 +16,7 @@ from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose
 from carmreg.logic.geometry.volume import MuPyramid
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import STAGES, CarmRegLogic, RegistrationParameters, final_drr_detector
-from carmreg.logic.report.result_files import save_result
+from carmreg.logic.report.result_files import fine_stage_pose, save_result
 from carmreg.logic.simulation.evaluation import evaluate
 from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
 from carmreg.logic.simulation.scene import random_pose
@@ -110,6 +110,9 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     assert score["max_unfitted_pde_pose_mm"] < 5.0
     assert [s for s, f in progress if f == 1.0] == list(STAGES)
     assert {s.name: s.extra for s in result.stages}["refine"]["accepted"]
+    settled = result.trajectory[-1][1] - fine_stage_pose(result)  # convergence.png plots the trajectory minus this
+    moved_on = result.pose.as_array() - fine_stage_pose(result)     # the image refinement's correction
+    assert np.abs(settled).max() < 0.5 < np.abs(moved_on).max()
     paths = save_result(result, tmp_path, xray.pixels, clicks.as_dict())
     doc = json.loads(paths["result"].read_text())
     P = np.array(doc["projection_matrix"])

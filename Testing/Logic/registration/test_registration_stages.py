@@ -90,6 +90,25 @@ def test_gc_derivatives_are_the_differences_of_two_gathers_bit_for_bit():
     assert du.shape == (5, i.size) and i.size > 500
 
 
+def test_several_gc_maps_in_one_pass_are_each_map_bit_for_bit():
+    """``gc_maps`` (the polarity and storage maps over the DRR database in one pass) gives exactly what
+    ``similarity`` gives map by map, over several chunks, in float32 and float64; an empty field scores 0."""
+    from carmreg.logic.similarity.metrics import gc_maps
+
+    rng = np.random.default_rng(8)
+    moving = rng.normal(size=(23, 30, 28)).astype(np.float32)
+    fixed = [rng.normal(size=(30, 28)) for _ in range(3)]
+    field = np.zeros((30, 28), bool)
+    field[2:27, 3:25] = True
+    for dtype in (np.float32, np.float64):
+        shared = gc_maps(fixed, moving, field, chunk=10, dtype=dtype)
+        for f, scores in zip(fixed, shared, strict=True):
+            np.testing.assert_array_equal(scores, similarity("gc", f, moving, field, chunk=10, dtype=dtype))
+        assert shared[0].dtype == np.float64 and np.ptp(shared[0]) > 0.1
+    empty = gc_maps(fixed, moving, np.zeros((30, 28), bool))
+    assert [s.tolist() for s in empty] == [[0.0] * 23] * 3
+
+
 def test_depth_search_recovers_magnification_from_intervertebral_distances():
     true_pose = [35.0, 4.0, -6.0, 0, 0, 0]
     result = depth_search(GEOMETRY, 4.0, -6.0, SPINE_LPS_MM[2:5], _clicks(true_pose))
