@@ -2,8 +2,9 @@
 its clicks fit well enough to call the verdict clear."""
 
 import numpy as np
+import pytest
 
-from carmreg.logic.image.appearance import verdict_at_clicks
+from carmreg.logic.image.appearance import REFINED_AT_CLICKS, decide_polarity, verdict_at_clicks
 from carmreg.logic.registration.click_polarity import CLEAR_WITH_WINNER_GC, _evidence, confirms
 from carmreg.logic.registration.image_refine import RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit
@@ -39,6 +40,25 @@ def test_a_polarity_that_wins_gc_by_pulling_the_ct_off_the_clicks_loses_and_noth
     evidence = _evidence(tight, labels, "log-display", ConfidenceRule())
     assert evidence.fits["bone-dark"] and verdict_at_clicks(evidence.scores, evidence.fits)[::2] == ("bone-dark", True)
     assert evidence.as_dict()["mpde_mm"]["bone-dark"] == [1.0, 4.71]
+
+
+def test_keeping_the_clicks_with_a_negative_gc_is_no_evidence_for_a_polarity():
+    """Independent case 16, bone dark (a 16-bit PNG, no polarity stated): bone dark reached GC 0.39 with the clicks
+    4.2 mm off (over the 4 mm cap), bone bright -0.06 on them. A negative GC says the image matches the inverted DRR:
+    bone dark is used (not trusted), where bone bright was used before and the levels registered on the negative."""
+    labels = [["T9", "T10", "T11"], ["T6", "T7", "T8"], ["T7", "T8", "T9"]]
+    registered = {"bone-dark": [_fit(labels[0], 0.272, 3.51), _fit(labels[1], 0.393, 4.19),
+                                _fit(labels[2], 0.298, 3.43)],
+                  "bone-bright": [_fit(labels[0], -0.101, 2.99), _fit(labels[1], -0.058, 3.33),
+                                  _fit(labels[2], -0.077, 3.08)]}
+    evidence = _evidence(registered, labels, "log-display", ConfidenceRule())
+    assert evidence.fits == {"bone-dark": False, "bone-bright": True}
+    seen, lead, clear = verdict_at_clicks(evidence.scores, evidence.fits)
+    assert (seen, clear) == ("bone-dark", False) and lead == pytest.approx(0.393 + 0.058)
+    chosen = decide_polarity({"bone-dark": 0.46, "bone-bright": 0.28}, evidence.scores, "auto", True, "PNG default",
+                             refined_by=REFINED_AT_CLICKS, fits=evidence.fits)
+    assert chosen.polarity == "bone-dark" and not chosen.clear and "keeps the clicks fitted" in chosen.note
+    assert verdict_at_clicks({"bone-dark": 0.0, "bone-bright": -0.2}, {"bone-dark": True})[0] == "bone-dark"
 
 
 def test_the_levels_winner_confirms_a_polarity_only_by_the_images_own_clear_verdict_and_a_wide_lead():
