@@ -92,6 +92,7 @@ from carmreg.logic.similarity.metrics import METRICS
 
 __all__ = ["MIN_CLICKS", "STAGES", "CarmRegLogic", "RegistrationParameters", "RegistrationResult", "StageResult"]
 
+
 def final_drr_detector(intr: CarmIntrinsics, sod_mm: float, ct_spacing_mm: float, max_px: int,
                        rays_per_voxel: float) -> CarmIntrinsics:
     """The detector the final DRR is traced on: the X-ray's (``intr``), scaled down (``scaled_to``) until its

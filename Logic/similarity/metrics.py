@@ -187,8 +187,9 @@ def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, chunk: int
         mu, mv = prepared[0]._derivatives(moving[i:i + chunk])
         centred_u, centred_v = _centred(mu), _centred(mv)
         for scores, g in zip(out, prepared, strict=True):
-            scores.append(0.5 * (_correlation_centred(*centred_u, g.fixed_u) + _correlation_centred(*centred_v,
-                                                                                                  g.fixed_v)))
+            along_u = _correlation_centred(*centred_u, g.fixed_u)
+            along_v = _correlation_centred(*centred_v, g.fixed_v)
+            scores.append(0.5 * (along_u + along_v))
     return [np.concatenate(scores).astype(np.float64) for scores in out]
 
 
