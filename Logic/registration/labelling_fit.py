@@ -18,6 +18,7 @@ points LPS mm, clicks (column, row) px, PDE detector mm.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,6 +69,7 @@ class LabellingFit:
     refine: RefineResult | None = None      # the best of its image refinements
     starts: int = 0                         # image refinements run (starts)
     runs: list = field(default_factory=list)  # objective of each start
+    curves: list = field(default_factory=list)  # per start: [(evaluations, best objective)] after each generation
 
     @property
     def refined(self) -> bool:
@@ -95,10 +97,18 @@ class LabellingFit:
     def mpde_mm(self) -> float:
         return float(self.refine.mpde_mm) if self.refine is not None else float("nan")
 
+    def copy(self, **changes) -> LabellingFit:
+        """A copy whose later starts do not touch this one's record (``runs``, ``curves``), with ``changes``."""
+        return dataclasses.replace(self, runs=list(self.runs), curves=list(self.curves), **changes)
+
     def as_dict(self) -> dict:
+        """For result.json; ``start_curves``: each start's best objective after each CMA-ES generation, from which
+        one can read whether a labelling was still improving when its search ended (a fair contest)."""
         return {"labels": list(self.labels), "shift": self.shift, "score": self.score,
                 "similarity": self.similarity, "mpde_mm": self.mpde_mm, "refined": self.refined,
                 "starts": self.starts, "start_scores": [float(x) for x in self.runs],
+                "start_curves": [{"evaluations": [e for e, _ in curve], "objective": [round(f, 6) for _, f in curve]}
+                                 for curve in self.curves],
                 "pose": [float(x) for x in self.pose]}
 
 
@@ -150,6 +160,7 @@ def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> 
                          fit.uv_px, ctx.refine, should_stop=ctx.should_stop)
     fit.starts += 1
     fit.runs.append(float(r.objective_end))
+    fit.curves.append([(int(evaluations), float(best)) for evaluations, best, _ in r.convergence])
     if fit.refine is None or r.objective_end < fit.refine.objective_end:
         fit.refine = r
     return fit

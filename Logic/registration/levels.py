@@ -37,7 +37,6 @@ equals the labelling's margin.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -218,7 +217,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     for done in registered:  # copies: the contest refits its leaders, the originals stay as registered
         for i, f in enumerate(fits):
             if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
-                fits[i] = dataclasses.replace(done, runs=list(done.runs))
+                fits[i] = done.copy()
     _contest(ctx, fits, plan.first)
     best = min((f for f in fits if f.refined), key=lambda f: f.score)
     if plan.given_index is None and not _explains_the_image(best, p.rule):
@@ -282,7 +281,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: 
 
     def reused(start: np.ndarray) -> LabellingFit | None:
         done = next((f for s, f in registered if np.array_equal(s, start) and f.refined), None)
-        return None if done is None else dataclasses.replace(done, labels=list(done.labels), runs=list(done.runs))
+        return None if done is None else done.copy(labels=list(done.labels))
 
     hypotheses = [reused(s) or unlabelled_fit(ctx, s) for s in starts]
     challenged: set[str] = set()

@@ -280,6 +280,13 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(sample, simulat
     assert check.margin >= 0.02 and check.runner_up_labels != check.winner_labels
     assert result.ok and score["all_named_correctly"]
     assert np.median(score["unfitted_pde_pose_mm"]) < 3.0, score["levels"]
+    registered = [h for h in check.hypotheses if h["refined"]]
+    assert max(h["starts"] for h in registered) == 2  # the leading two confirmed from each other's pose
+    for h in registered:  # each start's curve ends at its score: whether it was still improving can be read off
+        assert len(h["start_curves"]) == h["starts"] == len(h["start_scores"])
+        for curve, end in zip(h["start_curves"], h["start_scores"], strict=True):
+            assert np.all(np.diff(curve["evaluations"]) > 0) and np.all(np.diff(curve["objective"]) <= 0)
+            assert curve["objective"][-1] == pytest.approx(end, abs=1e-6)
 
 
 @pytest.mark.slow
