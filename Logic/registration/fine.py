@@ -42,7 +42,7 @@ class FineResult:
     mpde_mm: float                # at the pose, without the prior
     objective: float
     evaluations: int
-    convergence: list = field(default_factory=list)   # [(evaluations, best mPDE mm, best objective)]
+    convergence: list = field(default_factory=list)   # [(evaluations, mPDE mm at the best pose, best objective)]
     trajectory: list = field(default_factory=list)    # [(evaluations, mean pose (6,))]
     seconds: float = 0.0
 

@@ -163,15 +163,16 @@ def _figure_bytes(fig) -> bytes:
 
 
 def convergence_figure(result) -> bytes:
-    """mPDE over evaluations and the pose parameters' trajectory (paper Fig. 9-10): the fine search's mean minus
-    the fine stage's own answer (``fine_stage_pose``), so the curves settle at 0; the image refinement moves the
-    final pose on from there."""
+    """mPDE over evaluations and the pose parameters' trajectory (paper Fig. 9-10). Left: the detector mPDE at the
+    pose of the best objective so far (``fine.objective`` adds a rotation prior to the mPDE, so this can rise while
+    the objective falls). Right: the fine search's mean minus the fine stage's own answer (``fine_stage_pose``), so
+    the curves settle at 0; the image refinement moves the final pose on from there."""
     fig = _figure((10, 3.6))
     a, b = fig.subplots(1, 2, gridspec_kw={"wspace": 0.3})
     if result.convergence:
         ev, m, _ = np.array(result.convergence).T
         a.semilogy(ev, np.maximum(m, 1e-3), color="tab:blue")
-    a.set(xlabel="evaluations", ylabel="best mPDE (detector mm)", title="Fine stage: mPDE")
+    a.set(xlabel="evaluations", ylabel="mPDE at the best pose so far (mm)", title="Fine stage: mPDE")
     if result.trajectory:
         ev = np.array([t[0] for t in result.trajectory])
         poses = np.array([t[1] for t in result.trajectory])
