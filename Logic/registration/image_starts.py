@@ -21,7 +21,7 @@ about one GC map over the database (0.3 s for the chest CT's 7,650 DRRs here, ag
 
 The X-ray turned by a matching DRR(ty, tz) is the pose (ty, tz, rx = -a): the C-arm turns about its moved
 isocentre, which lies on the principal ray, so the anatomy at the principal point stays put
-(``test_image_starts``). The starts are the ``count`` best peaks of S (``spatial_peaks``), each with rx = -a* and
+(``test_image_starts``). The starts are the ``count`` best peaks of S (``spatial_peaks``, as grid cells), each with rx = -a* and
 no other rotation, at the database's depth. The angles span the C-arm's in-plane rotation CarmReg expects
 (+- 10 deg, as the coarse refinement's rx bound of 12 deg allows) in steps of 3 deg, within which the map holds
 its peak.
@@ -40,16 +40,22 @@ IN_PLANE_DEG = (-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0)
 def spatial_peaks(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, count: int,
                   min_separation_mm: float = 12.0) -> list[tuple[float, float]]:
     """The ``count`` best local maxima (ty, tz) of a spatial similarity map, at least ``min_separation_mm`` apart."""
+    return [(float(ty_mm[iy]), float(tz_mm[iz]))
+            for iy, iz in _peak_cells(score_map, ty_mm, tz_mm, count, min_separation_mm)]
+
+
+def _peak_cells(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, count: int,
+                min_separation_mm: float = 12.0) -> list[tuple[int, int]]:
+    """``spatial_peaks`` as grid cells (iy, iz) of ``score_map``."""
     from scipy import ndimage
 
     finite = np.where(np.isfinite(score_map), score_map, -np.inf)
     peaks = np.argwhere(finite == ndimage.maximum_filter(finite, size=3, mode="nearest"))
     peaks = sorted(peaks.tolist(), key=lambda ij: -finite[ij[0], ij[1]])
-    out: list[tuple[float, float]] = []
+    out: list[tuple[int, int]] = []
     for iy, iz in peaks:
-        ty, tz = float(ty_mm[iy]), float(tz_mm[iz])
-        if all(np.hypot(ty - a, tz - b) >= min_separation_mm for a, b in out):
-            out.append((ty, tz))
+        if all(np.hypot(ty_mm[iy] - ty_mm[jy], tz_mm[iz] - tz_mm[jz]) >= min_separation_mm for jy, jz in out):
+            out.append((iy, iz))
         if len(out) == count:
             break
     return out
@@ -83,8 +89,5 @@ def image_starts(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarr
     """(6,) start poses (tx, ty, tz, rx, ry, rz) at the ``count`` best peaks of the turned maps (module
     docstring): the database's depth tx, rx = -a*, ry = rz = 0."""
     best, angle = turned_maps(db, xray_coarse, mask_coarse)
-    starts = []
-    for ty, tz in spatial_peaks(best, db.ty_mm, db.tz_mm, count):
-        iy, iz = int(np.argmin(np.abs(db.ty_mm - ty))), int(np.argmin(np.abs(db.tz_mm - tz)))
-        starts.append(np.array([db.tx_mm, ty, tz, 0.0 - angle[iy, iz], 0.0, 0.0]))  # 0.0 - a: never -0.0
-    return starts
+    return [np.array([db.tx_mm, float(db.ty_mm[iy]), float(db.tz_mm[iz]), 0.0 - angle[iy, iz], 0.0, 0.0])
+            for iy, iz in _peak_cells(best, db.ty_mm, db.tz_mm, count)]  # 0.0 - a: never -0.0

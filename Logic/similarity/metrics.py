@@ -176,16 +176,12 @@ def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, chunk: int
     images' derivatives and their centring made once per chunk for every fixed image (each correlation is then the
     same matrix-vector product as in ``similarity``): several GC maps over a DRR database for little more than
     one."""
-    mask = np.asarray(mask, bool)
-    prepared = [GradientCorrelation(np.asarray(f, dtype=dtype), mask) for f in fixed_images]
-    shape = np.shape(fixed_images[0])
-    moving = np.asarray(moving, dtype=dtype).reshape(-1, *shape)
+    prepared = [GradientCorrelation(np.asarray(f, dtype=dtype), np.asarray(mask, bool)) for f in fixed_images]
+    moving = np.asarray(moving, dtype=dtype).reshape(-1, *np.shape(fixed_images[0]))
     if prepared[0].index.size == 0:
         return [np.zeros(len(moving)) for _ in prepared]
     out = [[] for _ in prepared]
-    for i in range(0, len(moving), chunk):
-        mu, mv = prepared[0]._derivatives(moving[i:i + chunk])
-        centred_u, centred_v = _centred(mu), _centred(mv)
+    for centred_u, centred_v in _centred_derivatives(prepared[0], moving, chunk):
         for scores, g in zip(out, prepared, strict=True):
             along_u = _correlation_centred(*centred_u, g.fixed_u)
             along_v = _correlation_centred(*centred_v, g.fixed_v)
@@ -195,18 +191,25 @@ def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, chunk: int
 
 def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, chunk: int = 512) -> np.ndarray:
     """(n, k) GC of every moving image (n, h, w) with every fixed image (k, h, w) on one ``mask``: column j is
-    ``gc(fixed[j], moving, mask)`` up to the order of float sums, the moving images' derivatives taken once for
-    all k (a GC map over a DRR database for k turns of the X-ray costs about one map)."""
+    ``gc(fixed[j], moving, mask)`` up to the order of float sums (one matrix product for all k, where ``gc_maps``
+    makes k matrix-vector products), the moving images' derivatives taken once for all k (a GC map over a DRR
+    database for k turns of the X-ray costs about one map)."""
     prepared = [GradientCorrelation(f, mask) for f in np.asarray(fixed, np.float32)]
     if prepared[0].index.size == 0:
         return np.zeros((len(moving), len(prepared)))
     fixed_u = np.stack([g.fixed_u for g in prepared], axis=1)  # (m, k) unit columns
     fixed_v = np.stack([g.fixed_v for g in prepared], axis=1)
-    out = []
-    for i in range(0, len(moving), chunk):
-        mu, mv = prepared[0]._derivatives(np.asarray(moving[i:i + chunk], np.float32))
-        out.append(0.5 * (_correlation(mu, fixed_u) + _correlation(mv, fixed_v)))
+    out = [0.5 * (_correlation_centred(*centred_u, fixed_u) + _correlation_centred(*centred_v, fixed_v))
+           for centred_u, centred_v in _centred_derivatives(prepared[0], np.asarray(moving, np.float32), chunk)]
     return np.concatenate(out).astype(np.float64)
+
+
+def _centred_derivatives(prepared: GradientCorrelation, moving: np.ndarray, chunk: int):
+    """Per ``chunk`` images of ``moving``: their two derivative images at ``prepared``'s inner pixels, each as
+    ``_centred`` gives it (rows minus their means, and the norms); what every fixed image on that field shares."""
+    for i in range(0, len(moving), chunk):
+        mu, mv = prepared._derivatives(moving[i:i + chunk])
+        yield _centred(mu), _centred(mv)
 
 
 def go(fixed, moving, mask):
