@@ -19,12 +19,11 @@ pixel that way is scored without a turn)::
 One field makes the DRRs' half of GC the same for every turn (``metrics.gc_against_each``): the seven turns cost
 about one GC map over the database (0.3 s for the chest CT's 7,650 DRRs here, against 4.7-6.4 s turn by turn).
 
-The X-ray turned by a matching DRR(ty, tz) is the pose (ty, tz, rx = -a): the C-arm turns about its moved
-isocentre, which lies on the principal ray, so the anatomy at the principal point stays put
-(``test_image_starts``). The starts are the ``count`` best peaks of S (``spatial_peaks``, as grid cells), each with rx = -a* and
-no other rotation, at the database's depth. The angles span the C-arm's in-plane rotation CarmReg expects
-(+- 10 deg, as the coarse refinement's rx bound of 12 deg allows) in steps of 3 deg, within which the map holds
-its peak.
+The X-ray turned by a matching DRR(ty, tz) is the pose (ty, tz, rx = -a): the C-arm turns about its moved isocentre,
+which lies on the principal ray, so the anatomy at the principal point stays put (``test_image_starts``). The starts
+are the ``count`` best peaks of S (``spatial_peaks``, as grid cells), each with rx = -a* and no other rotation, at
+the database's depth. The angles span the C-arm's in-plane rotation CarmReg expects (+- 10 deg, as the coarse
+refinement's rx bound of 12 deg allows) in steps of 3 deg, within which the map holds its peak.
 """
 
 from __future__ import annotations
