@@ -257,6 +257,8 @@ class ResultPanel(QtWidgets.QWidget):
                 for k, d in (("score", 3), ("similarity", 3), ("mpde_mm", 2))]
             if not registered:
                 cells[1] = "not registered"
+            elif h.get("stopped_at_evaluations"):  # early_stop: far behind, its search cut short
+                cells[1] += f" (stopped at {h['stopped_at_evaluations']})"
             for col, text in enumerate(cells):
                 item = QtWidgets.QTableWidgetItem(text)
                 if list(h.get("labels") or []) == winner:

@@ -61,6 +61,7 @@ class RefineResult:
     convergence: list = field(default_factory=list)
     seconds: float = 0.0
     objective_end: float = float("nan")
+    stopped_at: int | None = None       # evaluations after which ``give_up`` stopped it (None: ran in full)
 
 
 def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px, p: RefineParameters,
@@ -79,8 +80,10 @@ def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px,
 
 def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndarray, xray_line_integral: np.ndarray,
                      mask: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,
-                     params: RefineParameters | None = None, should_stop=None) -> RefineResult:
-    """Refine ``start_pose`` on image similarity + landmarks; see module docstring."""
+                     params: RefineParameters | None = None, should_stop=None, give_up=None) -> RefineResult:
+    """Refine ``start_pose`` on image similarity + landmarks; see module docstring. ``give_up(evaluations,
+    best_objective) -> bool``, asked after each generation, stops the search early when True (``early_stop``;
+    ``stopped_at`` records when)."""
     p = params or RefineParameters()
     t0 = time.perf_counter()
     intr = geometry.intrinsics
@@ -110,6 +113,9 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         if f[i] < best[0]:
             best = (float(f[i]), float(s[i]), population[i].copy())
         result.convergence.append((es.countevals, best[0], best[1]))
+        if give_up is not None and give_up(es.countevals, best[0]):
+            result.stopped_at = int(es.countevals)
+            break
     result.objective_end, result.similarity_end, result.pose = best
     P = geometry.projection_matrix(result.pose)
     result.mpde_mm = float(pde_mm(P, points_lps_mm, uv_px, intr.pixel_spacing_mm).mean()) \

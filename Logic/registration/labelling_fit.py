@@ -86,6 +86,11 @@ class LabellingFit:
         return np.array([d.tx_mm, d.ty_mm, d.tz_mm, 0.0, 0.0, 0.0]) if d is not None else np.zeros(6)
 
     @property
+    def stopped_at(self) -> int | None:
+        """Evaluations after which its kept refinement was stopped as hopeless (``early_stop``); None: in full."""
+        return self.refine.stopped_at if self.refine is not None else None
+
+    @property
     def score(self) -> float:
         return float(self.refine.objective_end) if self.refine is not None else float("inf")
 
@@ -107,6 +112,7 @@ class LabellingFit:
         return {"labels": list(self.labels), "shift": self.shift, "score": self.score,
                 "similarity": self.similarity, "mpde_mm": self.mpde_mm, "refined": self.refined,
                 "starts": self.starts, "start_scores": [float(x) for x in self.runs],
+                "stopped_at_evaluations": self.stopped_at,
                 "start_curves": [{"evaluations": [e for e, _ in curve], "objective": [round(f, 6) for _, f in curve]}
                                  for curve in self.curves],
                 "pose": [float(x) for x in self.pose]}
@@ -121,18 +127,29 @@ def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.
     return LabellingFit(list(labels), shift, np.asarray(points_lps_mm, float), np.asarray(uv_px, float), depth)
 
 
-def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = np.inf) -> LabellingFit:
+def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = np.inf, give_up=None
+                  ) -> LabellingFit:
     """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose (unless
     ``fit.fine`` is already there: ``landmark_fit``), then the wide image refinement that scores it (module
     docstring). Returns the same object, filled. A labelling whose
     landmark fit leaves the clicks' mPDE above ``landmark_gate_mm`` is not refined (``refined`` stays False):
-    the fine search minimises that mPDE, and the image refinement only trades it for image agreement."""
+    the fine search minimises that mPDE, and the image refinement only trades it for image agreement.
+    ``give_up``: stops the image refinement early (``early_stop``; ``complete`` runs it in full later)."""
     if ctx.on_labelling is not None:
         ctx.on_labelling(list(fit.labels))
     if fit.fine is None:
         fit.fine = landmark_fit(ctx, fit)
     if fit.fine.mpde_mm > landmark_gate_mm:
         return fit
+    return _refine_from(ctx, fit, fit.fine.pose, give_up)
+
+
+def complete(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+    """A labelling whose kept refinement was stopped early (``stopped_at``), refined in full: the same seeded search
+    from the same pose, run to its end, replaces it (the stopped start stays in the record: ``runs``, ``curves``)."""
+    if ctx.on_labelling is not None:
+        ctx.on_labelling(list(fit.labels))
+    fit.refine = None
     return _refine_from(ctx, fit, fit.fine.pose)
 
 
@@ -155,9 +172,9 @@ def unlabelled_fit(ctx: FitContext, start_pose: np.ndarray, shift: int = 0) -> L
     return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start_pose)
 
 
-def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
+def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, give_up=None) -> LabellingFit:
     r = intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm,
-                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop)
+                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop, give_up=give_up)
     fit.starts += 1
     fit.runs.append(float(r.objective_end))
     fit.curves.append([(int(evaluations), float(best)) for evaluations, best, _ in r.convergence])

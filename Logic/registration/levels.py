@@ -17,7 +17,11 @@ labellings next to it. When, for unnamed clicks, the best of them still explains
 agreement under the confidence rule's floor, or its clicks fitted beyond the cap), every other labelling is
 registered too: the click spacing can make the true labelling one of the least plausible (seen: a chest case
 whose true T10-T12 was the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT
-rank labellings reliably (the right one often ranked last after 160 evaluations and first after 800). Finally the
+rank labellings reliably (the right one often ranked last after 160 evaluations and first after 800), but a
+refinement that trails the reference's best rival (the runner-up, or the best other than the surgeon's names) by
+more than it could still gain is stopped (``early_stop``: never the surgeon's names, the first two registrations
+or a refit), and completed in full should its lower bound not clear that rival at the end (``_settle``), so the
+verdict is the one full refinements give. Finally the
 leading two are each refitted from the other's refined pose (a second, independent start; each keeps its better
 refinement), so neither loses to a local optimum of its optimiser; if the lead changes hands, the answer is not
 stable (``level_confidence``).
@@ -43,9 +47,11 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.registration.early_stop import give_up_above, lower_bound
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
+    complete,
     fit_labelling,
     plan_labelling,
     refit_from,
@@ -74,6 +80,7 @@ class IdentifyParameters:
     max_shift: int = 2                      # named clicks: shifts tried each way
     image_starts: int = 3                   # no clicks: spatial-map peaks refined (``image_starts``)
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
+    stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
 
 
@@ -132,11 +139,16 @@ def _message(mode: str, verdict: Verdict, chosen: LabellingFit, names: list | No
             "level names (another view, or name a distinctive level) before trusting this overlay")
 
 
-def _contest(ctx: FitContext, fits: list[LabellingFit], first: list[int]) -> None:
-    """Register ``first``, then both neighbours of the best until it holds (module docstring)."""
+def _contest(ctx: FitContext, fits: list[LabellingFit], first: list[int], keep: int | None = None,
+             stop_hopeless: bool = True) -> None:
+    """Register ``first``, then both neighbours of the best until it holds (module docstring). With
+    ``stop_hopeless``, a labelling's refinement stops once it cannot come near the reference's best rival
+    registered in full so far (``early_stop``, ``_rival_score``), except the surgeon's names (index ``keep``)."""
     def register(i: int) -> None:
-        if not fits[i].refined:
-            fit_labelling(ctx, fits[i])
+        if fits[i].refined:
+            return
+        bar = _rival_score(fits, keep) if stop_hopeless and i != keep else np.inf
+        fit_labelling(ctx, fits[i], give_up=give_up_above(bar) if np.isfinite(bar) else None)
 
     for i in first:
         register(i)
@@ -147,6 +159,30 @@ def _contest(ctx: FitContext, fits: list[LabellingFit], first: list[int]) -> Non
             return
         for j in todo:
             register(j)
+
+
+def _rival_score(fits: list[LabellingFit], keep: int | None) -> float:
+    """The score of the reference's best rival among the labellings registered in full (inf: none yet). The
+    reference is the surgeon's names (index ``keep``), else the best; ``decide`` compares it with this rival, so a
+    labelling that ends behind the rival changes nothing, and the rival's score only falls as the contest goes on."""
+    full = sorted((f for f in fits if f.refined and f.stopped_at is None), key=lambda f: f.score)
+    if not full or (keep is not None and not fits[keep].refined):
+        return np.inf
+    reference = fits[keep] if keep is not None else full[0]
+    return next((f.score for f in full if f is not reference), np.inf)
+
+
+def _settle(ctx: FitContext, fits: list[LabellingFit], keep: int | None) -> None:
+    """Complete (``labelling_fit.complete``) every labelling stopped early whose lower bound (``early_stop``) does
+    not clear the reference's best rival (``_rival_score``), until none is left: then no stopped labelling can be
+    the winner or the rival ``decide`` compares with. A safety net: a labelling stops only behind the rival of its
+    time, whose score only falls."""
+    while True:
+        rival = _rival_score(fits, keep)
+        todo = [f for f in fits if f.stopped_at is not None and lower_bound(f.score, f.stopped_at) <= rival]
+        if not todo:
+            return
+        complete(ctx, min(todo, key=lambda f: lower_bound(f.score, f.stopped_at)))
 
 
 def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
@@ -218,14 +254,17 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         for i, f in enumerate(fits):
             if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
                 fits[i] = done.copy()
-    _contest(ctx, fits, plan.first)
+    keep, stop = plan.given_index, p.stop_hopeless
+    _contest(ctx, fits, plan.first, keep, stop)
     best = min((f for f in fits if f.refined), key=lambda f: f.score)
     if plan.given_index is None and not _explains_the_image(best, p.rule):
-        _contest(ctx, fits, list(range(len(fits))))  # unnamed, the most plausible explain it poorly: every one
+        _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
+    _settle(ctx, fits, keep)
     stable = True
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits)
-        _contest(ctx, fits, [])  # a new leader is compared with its neighbours too
+        _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
+        _settle(ctx, fits, keep)
     given = fits[plan.given_index] if plan.given_index is not None else None
     if not appearance_clear and judge_appearance is not None:
         unblocked = decide(fits, given, p.rule, stable=stable)  # the verdict were the appearance clear
