@@ -122,10 +122,12 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
         if key not in seen:
             seen.add(key)
             parts.append(f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(key) > 1 else key[0]} "
-                         f"{float(h['score']):.3f}" + (" (stopped early)" if h.get("stopped_at_evaluations") else ""))
+                         f"{float(h['score']):.3f}" + ("*" if h.get("stopped_at_evaluations") else ""))
     text = f"{seen_as}Mode: {mode}."
     if parts:
         text += " Labellings registered, score (lower is better): " + ", ".join(parts[:8]) + "."
+        if any("*" in part for part in parts[:8]):
+            text += " *: stopped early, too far behind to matter."
     return _wrap(text, 110)
 
 
