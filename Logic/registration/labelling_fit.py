@@ -147,10 +147,8 @@ def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = 
 def complete(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
     """A labelling whose kept refinement was stopped early (``stopped_at``), refined in full: the same seeded search
     from the same pose, run to its end, replaces it (the stopped start stays in the record: ``runs``, ``curves``)."""
-    if ctx.on_labelling is not None:
-        ctx.on_labelling(list(fit.labels))
     fit.refine = None
-    return _refine_from(ctx, fit, fit.fine.pose)
+    return fit_labelling(ctx, fit)
 
 
 def landmark_fit(ctx: FitContext, fit: LabellingFit) -> FineResult:

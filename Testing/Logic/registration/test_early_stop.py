@@ -39,8 +39,9 @@ def test_a_stopped_refinement_is_the_full_one_cut_short(tiny_db_inputs):
     assert cut.objective_end == cut.convergence[-1][1] >= full.objective_end
 
 
-def _stopped_fit(score: float, stopped_at: int | None) -> LabellingFit:
-    """A labelling 'registered' with the given score (its landmark pose the tiny CT's centre)."""
+def _scored_fit(score: float, stopped_at: int | None) -> LabellingFit:
+    """A labelling 'registered' with the given score, stopped after ``stopped_at`` evaluations or (None) in full; its
+    landmark pose the tiny CT's centre."""
     fit = LabellingFit(["A"], 0, np.zeros((0, 3)), np.zeros((0, 2)), fine=FineResult(np.zeros(6), 0.0, 0.0, 0))
     fit.refine = RefineResult(np.zeros(6), 0.0, 0.0, float("nan"), 1, objective_end=score, stopped_at=stopped_at)
     return fit
@@ -52,14 +53,14 @@ def test_a_stopped_labelling_is_completed_only_when_it_could_still_end_ahead_of_
     image = render_line_integrals(level, geometry, np.zeros(6))
     ctx = FitContext(level, geometry, image, np.ones(image.shape, bool), 0.0, 0.0, FineParameters(),
                      coarse_refine_parameters())
-    leader, rival = _stopped_fit(0.2, None), _stopped_fit(0.5, None)
-    behind = _stopped_fit(0.5 + allowance(640) + 0.01, 640)   # cannot end ahead of the rival: left as it is
-    close = _stopped_fit(0.5 + allowance(640) - 0.01, 640)    # could: registered in full
+    leader, rival = _scored_fit(0.2, None), _scored_fit(0.5, None)
+    behind = _scored_fit(0.5 + allowance(640) + 0.01, 640)   # cannot end ahead of the rival: left as it is
+    close = _scored_fit(0.5 + allowance(640) - 0.01, 640)    # could: registered in full
     fits = [leader, rival, behind, close]
     assert _rival_score(fits, None) == 0.5 and _rival_score(fits, 1) == 0.2  # names given: the best other
     _settle(ctx, fits, None)
     assert behind.stopped_at == 640 and behind.starts == 0
     assert close.stopped_at is None and close.starts == 1 and close.refine.evaluations > 640
-    named = [_stopped_fit(0.6, None), _stopped_fit(0.2, None), _stopped_fit(0.2 + allowance(480) - 0.01, 480)]
+    named = [_scored_fit(0.6, None), _scored_fit(0.2, None), _scored_fit(0.2 + allowance(480) - 0.01, 480)]
     _settle(ctx, named, 0)  # the names (0.6) are the reference, their rival the best other (0.2)
     assert named[2].stopped_at is None
