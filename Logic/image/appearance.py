@@ -90,6 +90,16 @@ its mirror by only 0.082, while every mirrored display judged at the clicks (bot
 mirror by 0.25 or more; over all 303 recorded clicked runs the change turns 5 tune runs (correct displays) from
 ambiguous to confident or contradicted as they should be, and none of the report half.
 
+The orientation check at the clicks needs a clear polarity, and on a mirrored display the polarity check at the
+clicks finds no aligned spine under either polarity: its verdict stays unclear, sometimes for the wrong polarity
+(the appearance benchmark, stop 17: 11 of 24 mirrored displays with unnamed clicks unclear, 4 of them taken bone
+bright). So when the polarity at the clicks is unclear (and the user did not set it), it is judged again on the
+image mirrored left-right, exactly as at the clicks (``REFINED_ON_MIRROR``, ``pipeline._polarity_on_mirror``). That
+verdict is taken only when it is clear and the mirror then leads the stored image under that polarity by
+``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``click_orientation.stored_against_turned``): the
+display is then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the
+record. No threshold of its own: the verdict's are the two at the clicks.
+
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
 user's polarity the image clearly contradicts, keeps any level answer from being confident
@@ -115,6 +125,7 @@ CLEAR_CLICKS_GC = 0.10      # at the clicks' poses: the GC gap called clear (tun
 MIN_CLICKS_GC = 0.30        # ... and the winner's GC must reach this (ditto)
 REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
+REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # ... on the mirrored display
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
@@ -320,14 +331,14 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
     """The polarity to use (module docstring). ``requested``: "auto" or a polarity the user chose; ``storage``:
     the ``database_gc`` when known (else see ``Appearance.set_storage``); ``header_explicit``: the file states its
     polarity (rather than a default for its type); ``refined_by``: where the ``refined`` scores were measured
-    (``REFINED_AT_DATABASE_POSES``, or ``REFINED_AT_CLICKS`` with ``fits``: {polarity: the best registration
-    keeps the clicks fitted})."""
+    (``REFINED_AT_DATABASE_POSES``, or ``REFINED_AT_CLICKS`` / ``REFINED_ON_MIRROR`` with ``fits``: {polarity: the
+    best registration keeps the clicks fitted})."""
     header = "bone-dark" if header_bone_dark else "bone-bright"
     if refined is None:
         evidence, threshold, by = database, CLEAR_POLARITY_GC, "image"
     else:
         evidence, threshold, by = refined, CLEAR_REFINED_GC, f"image ({refined_by})"
-    if refined is not None and refined_by == REFINED_AT_CLICKS:
+    if refined is not None and refined_by in (REFINED_AT_CLICKS, REFINED_ON_MIRROR):
         threshold = CLEAR_CLICKS_GC
         seen, gap, clear = verdict_at_clicks(refined, fits or {})
         why = ("no registration of it keeps the clicks fitted" if not (fits or {}).get(seen) else

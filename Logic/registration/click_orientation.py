@@ -37,11 +37,14 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, ORIENTATIONS, orient_uv
+from carmreg.logic.io.landmarks import Landmarks2D
+from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
 from carmreg.logic.registration.labellings import order_along_spine
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 
-ALWAYS_CHECKED = ("mirrored-left-right",)
+MIRROR = "mirrored-left-right"
+ALWAYS_CHECKED = (MIRROR,)
 
 
 @dataclass
@@ -112,6 +115,28 @@ def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int]
     fitted = {name: bool(name == "as-stored" or (np.isfinite(scores[name]) and m <= limit))
               for name, m in mpde.items()}
     return ClickOrientation([list(f.labels) for f in judged], scores, mpde, fitted)
+
+
+def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> Landmarks2D:
+    """The clicks where orientation ``name`` of the image (``size_px`` = (columns, rows) as stored) shows them; names
+    stay with their clicks (they are anatomy)."""
+    return Landmarks2D(list(clicks.labels), orient_uv(clicks.uv_px, name, size_px), clicks.source,
+                       clicks.pixel_spacing_mm)
+
+
+def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: str, polarity: str,
+                          rule: ConfidenceRule) -> ClickOrientation:
+    """The orientation evidence of a polarity judged on orientation ``name`` of the image as well as stored
+    (``pipeline._polarity_on_mirror``): each orientation's score is its best registration under ``polarity``
+    (``polarity_at_clicks`` on the stored image, ``stored``, and on the turned one with the clicks turned,
+    ``turned``); the turned one keeps the clicks fitted when its own verdict says so (``turned.fits``) and its mPDE
+    is within the level rule's limit against the stored one's, as ``orientation_at_clicks`` asks of a rival."""
+    best = {o: max(cp.registered[polarity], key=lambda f: f.similarity)
+            for o, cp in (("as-stored", stored), (name, turned))}
+    limit = landmark_limit_mm(best["as-stored"].mpde_mm, rule)
+    fitted = {"as-stored": True, name: bool(turned.fits[polarity] and best[name].mpde_mm <= limit)}
+    return ClickOrientation([list(lb) for lb in turned.labels], {o: float(f.similarity) for o, f in best.items()},
+                            {o: float(f.mpde_mm) for o, f in best.items()}, fitted)
 
 
 def _registered_turned(ctx: FitContext, fit: LabellingFit, name: str, size_px: tuple[int, int],

@@ -42,6 +42,7 @@ from carmreg.logic.image.appearance import (
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
+    REFINED_ON_MIRROR,
     better_storage,
     database_gc,
     decide_polarity,
@@ -52,7 +53,14 @@ from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
-from carmreg.logic.registration.click_orientation import orientation_at_clicks, oriented_context, rival_orientations
+from carmreg.logic.registration.click_orientation import (
+    MIRROR,
+    orientation_at_clicks,
+    oriented_context,
+    rival_orientations,
+    stored_against_turned,
+    turned_clicks,
+)
 from carmreg.logic.registration.click_polarity import (
     CLEAR_WITH_WINNER_GC,
     ClickPolarity,
@@ -237,8 +245,49 @@ class CarmRegLogic:
                                              a.bone_dark))
         state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
         self._orientation_at_clicks(state, "spatial")
+        self._polarity_on_mirror(state, gc_by_storage)
         self._appearance_warnings(state)
-        return a.as_dict()
+        return state.appearance.as_dict()
+
+    def _polarity_on_mirror(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """With clicks, and a polarity the image left unclear at them (the user did not set it): the polarity judged
+        again on the image mirrored left-right, the clicks mirrored with it, exactly as at the clicks
+        (``polarity_at_clicks``; a mirrored display shows no aligned spine as stored, under either polarity). Taken
+        only when that verdict is clear and the mirror then leads the stored image under that polarity by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
+        ``Appearance.set_orientation_at_clicks``): the display is mirrored, the image refused, no level answer
+        confident. Otherwise the appearance stays as it was, with the mirror's evidence recorded
+        (``scores["on_mirror"]``)."""
+        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        if cp is None or a.clear or p.polarity in POLARITIES:
+            return
+        contexts = {polarity: oriented_context(ctx, MIRROR)
+                    for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
+        clicks = turned_clicks(state.xray_landmarks, MIRROR, xray.size_px)
+        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.9, f"telling bone-dark from bone-bright on the image mirrored left-right "
+                                         f"({done + 1} of {total})")
+
+        mirrored = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
+        a.scores["on_mirror"] = mirrored.as_dict()
+        again = decide_polarity(a.scores["database"], mirrored.scores, p.polarity, xray.bone_dark,
+                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                                refined_by=REFINED_ON_MIRROR, fits=mirrored.fits)
+        if not again.clear:
+            return
+        again.scores.update(at_clicks=cp.as_dict(), on_mirror=mirrored.as_dict())
+        again.set_storage(gc_by_storage)
+        again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
+            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
+        again.set_orientation_at_clicks(stored_against_turned(cp, mirrored, MIRROR, again.polarity,
+                                                              p.identify.rule).as_dict())
+        if again.orientation != MIRROR:
+            return
+        state.appearance = again
+        state.known_gc = self._known_gc(state, gc_by_storage)
+        state.xray_line_integral = attenuation(xray.pixels, state.mask, again.bone_dark, again.storage)
 
     @staticmethod
     def _appearance_warnings(state: RegistrationState) -> None:

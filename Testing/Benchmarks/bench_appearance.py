@@ -64,16 +64,17 @@ def half(case: int) -> str:
 class CaseMaker:
     """Builds the scenes of a case (both detectors) from the CTs, once per case."""
 
-    def __init__(self):
+    def __init__(self, second_ct: bool = True):
+        """``second_ct`` False: the chest CT only (a test that needs no ../shared)."""
         sample = sample_case()
         self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
-        second = load_second_ct()
-        if second is None:
+        self.parts = {}
+        second = load_second_ct() if second_ct else None
+        if second is not None:
+            self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
+        elif second_ct:
             print("bench_appearance: the second CT (../shared) is not found: every case uses the chest CT",
                   file=sys.stderr, flush=True)
-        else:
-            self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
-        self.parts = {}
 
     def ct_name(self, case: int) -> str:
         return "abdomen" if "abdomen" in self.cts and case % 3 == 2 else "chest"

@@ -1,5 +1,10 @@
 """The display's orientation judged where the clicks put the CT (``click_orientation``): the geometry of a turned
-image first, then the rule, then a realistic case shown as acquired and shown upside down."""
+image first, then the rule, then a realistic case shown as acquired and shown upside down, and a mirrored display
+whose polarity only the mirror tells."""
+
+import sys
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,18 +14,24 @@ from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_AT_CLICKS_GC,
     ORIENTATIONS,
+    REFINED_ON_MIRROR,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     decide_polarity,
     orient_uv,
+    verdict_at_clicks,
 )
 from carmreg.logic.io.landmarks import Landmarks2D
-from carmreg.logic.io.xray import XrayImage
+from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.click_orientation import (
+    MIRROR,
     orientation_at_clicks,
     oriented_context,
     oriented_geometry,
     rival_orientations,
+    stored_against_turned,
+    turned_clicks,
 )
+from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 
@@ -92,6 +103,77 @@ def test_the_rule_at_the_clicks_each_part_deciding():
     assert refused.orientation == "mirrored-left-right"
     refused.set_orientation_at_clicks({"scores": {**base, "mirrored-left-right": 0.40}, "fitted": fitted})
     assert (refused.orientation, refused.orientation_clear, refused.trusted) == ("as-stored", False, False)
+
+
+def _registered(similarity_mpde: dict, fits: dict) -> ClickPolarity:
+    """A polarity check's evidence: {polarity: [(GC, mPDE mm) of each labelling]}, and its verdict's ``fits``."""
+    registered = {p: [SimpleNamespace(similarity=g, mpde_mm=m) for g, m in done] for p, done in similarity_mpde.items()}
+    scores = {p: max(f.similarity for f in done) for p, done in registered.items()}
+    return ClickPolarity(scores, fits, registered, [["T10", "T11", "T12"], ["T11", "T12", "L1"]], "log-display")
+
+
+def test_the_polarity_judged_on_the_mirror_too_compares_each_orientations_best_registration_under_it():
+    rule = RegistrationParameters().identify.rule
+    stored = _registered({"bone-dark": [(0.30, 3.0), (0.41, 2.0)], "bone-bright": [(0.35, 5.0), (0.1, 6.0)]},
+                         {"bone-dark": True, "bone-bright": False})
+    mirrored = _registered({"bone-dark": [(0.62, 1.8), (0.2, 4.0)], "bone-bright": [(-0.05, 5.0), (0.0, 6.0)]},
+                           {"bone-dark": True, "bone-bright": False})
+    evidence = stored_against_turned(stored, mirrored, MIRROR, "bone-dark", rule)
+    assert evidence.scores == {"as-stored": 0.41, MIRROR: 0.62}
+    assert evidence.mpde_mm == {"as-stored": 2.0, MIRROR: 1.8}
+    assert evidence.fitted == {"as-stored": True, MIRROR: True}
+    a = _appearance()
+    a.set_orientation_at_clicks(evidence.as_dict())
+    assert (a.orientation, a.trusted) == (MIRROR, False)
+    # the mirror's best registration left its clicks, by its own verdict or against the stored one's mPDE
+    unfitted = _registered({"bone-dark": [(0.62, 1.8)], "bone-bright": [(0.0, 1.0)]},
+                           {"bone-dark": False, "bone-bright": True})
+    assert not stored_against_turned(stored, unfitted, MIRROR, "bone-dark", rule).fitted[MIRROR]
+    far = _registered({"bone-dark": [(0.62, rule.max_landmark_mpde_mm + 0.1)], "bone-bright": [(0.0, 9.0)]},
+                      {"bone-dark": True, "bone-bright": False})
+    assert not stored_against_turned(stored, far, MIRROR, "bone-dark", rule).fitted[MIRROR]
+
+
+def test_turned_clicks_keep_their_names():
+    clicks = Landmarks2D(["T11", None, "L1"], np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]]))
+    turned = turned_clicks(clicks, MIRROR, (100, 80))
+    assert turned.labels == ["T11", None, "L1"]
+    assert turned.uv_px.tolist() == [[89.0, 20.0], [69.0, 40.0], [49.0, 60.0]]
+
+
+@pytest.mark.slow
+def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_from_the_mirror(sample_case_dir,
+                                                                                              tmp_path_factory):
+    """The appearance benchmark's tune case 0 (chest CT, its independent simulator), an intensifier image shown
+    mirrored left-right, bone dark, 16-bit PNG, three unnamed clicks: where the clicks put the CT as stored, neither
+    polarity shows an aligned spine (stop 18: the verdict unclear, bone bright taken). Judged on the mirror too, the
+    polarity is found bone dark, and the display mirrored: refused, so no level answer can be confident."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
+    import appearance as app
+    import bench_appearance as bench
+
+    maker = bench.CaseMaker(second_ct=False)
+    folder = tmp_path_factory.mktemp("mirrored-case")
+    variant = app.VARIANTS["ii-dark-mirrored-png"]
+    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0, folder)
+    detector = app.DETECTORS[variant.detector]
+    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
+    uv = np.asarray(record["truth"]["clicks_uv_px"], float)
+    (ct, _, centroids), _, _ = maker.cts["chest"]
+    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv), uv), p)
+    for stage in ("database", "spatial"):
+        logic.run_stage(state, stage)
+    a = state.appearance
+    as_stored = a.scores["at_clicks"]
+    assert not verdict_at_clicks(as_stored["scores"], as_stored["fits"])[2]  # the stored image alone: unclear
+    assert (a.polarity, a.clear, a.decided_by) == ("bone-dark", True, f"image ({REFINED_ON_MIRROR})")
+    assert a.scores["on_mirror"]["scores"]["bone-dark"] >= a.scores["on_mirror"]["scores"]["bone-bright"] + 0.10
+    assert (a.orientation, a.trusted) == (MIRROR, False)
+    assert a.orientation_at_clicks["scores"][MIRROR] >= a.orientation_at_clicks["scores"]["as-stored"] \
+        + REFUSE_ORIENTATION_AT_CLICKS_GC
+    assert state.xray_line_integral is not None and state.known_gc is not None
 
 
 @pytest.fixture(scope="module")
