@@ -112,7 +112,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image, bin_mask
+from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
@@ -261,11 +261,6 @@ def rank_image(pixels: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def _coarse(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
-    rows, cols = shape
-    return bin_image(image, factor)[:rows, :cols]
-
-
 def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> tuple[dict, dict]:
     """The image against every database DRR, in one pass (``metrics.gc_maps``):
 
@@ -275,9 +270,9 @@ def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: 
 
     ``drrs``: (n, rows, cols) coarse DRRs (line integrals); ``factor``: detector binning to their pixel."""
     shape = drrs.shape[1:]
-    coarse_mask = bin_mask(mask, factor)[:shape[0], :shape[1]]
-    images = [_coarse(rank_image(pixels, mask), factor, shape)]
-    images += [_coarse(attenuation(pixels, mask, True, storage), factor, shape) for storage in STORAGES]
+    coarse_mask = bin_mask_to(mask, factor, shape)
+    images = [bin_image_to(rank_image(pixels, mask), factor, shape)]
+    images += [bin_image_to(attenuation(pixels, mask, True, storage), factor, shape) for storage in STORAGES]
     ranked, *stored = gc_maps(images, drrs, coarse_mask)
     return ({"bone-dark": float(np.max(-ranked)), "bone-bright": float(np.max(ranked))},
             dict(zip(STORAGES, stored, strict=True)))
@@ -302,8 +297,8 @@ def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarr
         if image.shape != ranked.shape or (name.startswith("turned-") and name != "turned-180"
                                            and ranked.shape[0] != ranked.shape[1]):
             continue
-        coarse_mask = bin_mask(np.ascontiguousarray(field), factor)[:rows, :cols]
-        g = similarity("gc", _coarse(np.ascontiguousarray(image), factor, (rows, cols)), flat, coarse_mask)
+        coarse_mask = bin_mask_to(np.ascontiguousarray(field), factor, (rows, cols))
+        g = similarity("gc", bin_image_to(np.ascontiguousarray(image), factor, (rows, cols)), flat, coarse_mask)
         out[name] = float(np.max(sign * g))
     return out
 

@@ -48,6 +48,19 @@ def bin_mask(mask: np.ndarray, factor: int) -> np.ndarray:
     return bin_image(mask.astype(np.float32), factor) > 0.999
 
 
+def bin_image_to(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """``bin_image`` on the grid of a binned detector of ``shape`` = (rows, cols) (``CarmIntrinsics.binned``, the
+    DRR database's images): the bins that fit, cropped to that grid."""
+    rows, cols = shape
+    return bin_image(image, factor)[:rows, :cols]
+
+
+def bin_mask_to(mask: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """``bin_mask`` on the grid of a binned detector of ``shape`` = (rows, cols), as ``bin_image_to``."""
+    rows, cols = shape
+    return bin_mask(mask, factor)[:rows, :cols]
+
+
 def coarse_factor(pixel_spacing_mm: tuple[float, float], target_mm: float = 4.0) -> int:
     """Binning factor that brings the detector pixel closest to ``target_mm`` (paper: 4 mm coarse images)."""
     return max(1, int(round(target_mm / max(min(pixel_spacing_mm), 1e-6))))

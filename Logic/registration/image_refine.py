@@ -30,7 +30,7 @@ from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
-from carmreg.logic.image.prepare import bin_image, bin_mask
+from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
 from carmreg.logic.registration.cma_search import cma_strategy
 from carmreg.logic.similarity.metrics import prepare
 
@@ -90,8 +90,8 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     factor = max(1, int(round(p.detector_pixel_mm / min(intr.pixel_spacing_mm))))
     small = intr.binned(factor)
     cols, rows = small.size_px
-    fixed = bin_image(xray_line_integral, factor)[:rows, :cols]
-    fmask = bin_mask(mask, factor)[:rows, :cols]
+    fixed = bin_image_to(xray_line_integral, factor, (rows, cols))
+    fmask = bin_mask_to(mask, factor, (rows, cols))
     x0 = np.asarray(start_pose, float).copy()
     es = cma_strategy(x0, p.sigma, p.bounds, p.popsize, p.max_evaluations, p.seed, tolx=1e-3)
     spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it

@@ -49,7 +49,7 @@ from carmreg.logic.image.appearance import (
     orientation_scores,
 )
 from carmreg.logic.image.field import field_mask
-from carmreg.logic.image.prepare import attenuation, bin_image, bin_mask, coarse_factor
+from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -405,12 +405,12 @@ class CarmRegLogic:
         p, db = state.parameters, state.database
         dark_storage = better_storage(gc_by_storage)
         rows, cols = db.drrs.shape[2:]
-        mask_coarse = bin_mask(state.mask, state.coarse_factor)[:rows, :cols]
+        mask_coarse = bin_mask_to(state.mask, state.coarse_factor, (rows, cols))
         contexts = self._polarity_contexts(state, dark_storage)
         starts, maps = {}, {}
         for polarity, ctx in contexts.items():
             known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
-            coarse = bin_image(ctx.xray_line_integral, state.coarse_factor)[:rows, :cols]
+            coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
             maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
             starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
 
@@ -422,11 +422,11 @@ class CarmRegLogic:
 
     def _spatial(self, state: RegistrationState) -> dict:
         appearance = self._decide_appearance(state)
-        xc = bin_image(state.xray_line_integral, state.coarse_factor)
-        mc = bin_mask(state.mask, state.coarse_factor)
-        rows, cols = state.database.drrs.shape[2:]
+        shape = state.database.drrs.shape[2:]
+        xc = bin_image_to(state.xray_line_integral, state.coarse_factor, shape)
+        mc = bin_mask_to(state.mask, state.coarse_factor, shape)
         p = state.parameters
-        state.spatial = spatial_search(state.database, xc[:rows, :cols], mc[:rows, :cols], p.metric,
+        state.spatial = spatial_search(state.database, xc, mc, p.metric,
                                        METRICS if p.all_metrics else (p.metric,),
                                        known=None if state.known_gc is None else {"gc": state.known_gc})
         per_metric = {}
@@ -502,8 +502,8 @@ class CarmRegLogic:
         if checked is not None and state.appearance.polarity in checked.starts:
             return list(checked.starts[state.appearance.polarity])
         rows, cols = db.drrs.shape[2:]
-        return image_starts(db, bin_image(state.xray_line_integral, state.coarse_factor)[:rows, :cols],
-                            bin_mask(state.mask, state.coarse_factor)[:rows, :cols], p.identify.image_starts)
+        return image_starts(db, bin_image_to(state.xray_line_integral, state.coarse_factor, (rows, cols)),
+                            bin_mask_to(state.mask, state.coarse_factor, (rows, cols)), p.identify.image_starts)
 
     @staticmethod
     def _registered_at_clicks(state: RegistrationState) -> list:

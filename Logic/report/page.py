@@ -116,17 +116,16 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     mode = MODE_DESCRIPTION.get(check.mode, str(check.mode))
     tried = sorted((h for h in check.hypotheses if h.get("refined", True) and h.get("labels")),
                    key=lambda h: float(h.get("score", np.inf)))
-    seen, parts = set(), []
-    for h in tried:
-        key = tuple(h["labels"])
-        if key not in seen:
-            seen.add(key)
-            parts.append(f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(key) > 1 else key[0]} "
-                         f"{float(h['score']):.3f}" + ("*" if h.get("stopped_at_evaluations") else ""))
+    best_of = {}
+    for h in tried:  # best first: each labelling's best registration
+        best_of.setdefault(tuple(h["labels"]), h)
+    shown = list(best_of.values())[:8]
+    parts = [f"{'-'.join([h['labels'][0], h['labels'][-1]]) if len(h['labels']) > 1 else h['labels'][0]} "
+             f"{float(h['score']):.3f}" + ("*" if h.get("stopped_at_evaluations") else "") for h in shown]
     text = f"{seen_as}Mode: {mode}."
     if parts:
-        text += " Labellings registered, score (lower is better): " + ", ".join(parts[:8]) + "."
-        if any("*" in part for part in parts[:8]):
+        text += " Labellings registered, score (lower is better): " + ", ".join(parts) + "."
+        if any(h.get("stopped_at_evaluations") for h in shown):
             text += " *: stopped early, too far behind to matter."
     return _wrap(text, 110)
 

@@ -13,7 +13,7 @@ from simulated_cases import simulated_ap_case
 from carmreg.logic.errors import CancelledError
 from carmreg.logic.image.appearance import decide_polarity, rank_image
 from carmreg.logic.image.field import field_mask
-from carmreg.logic.image.prepare import bin_image, bin_mask
+from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
@@ -278,8 +278,8 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
     assert len(evidence.registered["bone-bright"]) == params.identify.image_starts
     # the spatial stage took the check's map of the chosen polarity; computed afresh it is the same
     rows, cols = state.database.drrs.shape[2:]
-    fresh = spatial_search(state.database, bin_image(state.xray_line_integral, state.coarse_factor)[:rows, :cols],
-                           bin_mask(state.mask, state.coarse_factor)[:rows, :cols], "gc", ("gc",))
+    fresh = spatial_search(state.database, bin_image_to(state.xray_line_integral, state.coarse_factor, (rows, cols)),
+                           bin_mask_to(state.mask, state.coarse_factor, (rows, cols)), "gc", ("gc",))
     np.testing.assert_allclose(state.spatial.maps["gc"], fresh.maps["gc"], atol=1e-6)
 
     hypotheses = state.identification.fits  # one per level named; a reused one holds the very refinement

@@ -119,3 +119,19 @@ def test_a_margin_without_a_rival_is_written_as_null_not_a_traceback(tmp_path):
     doc = json.loads(paths["result"].read_text())
     assert [lv["name_margin"] for lv in doc["levels"]] == [None] * 4
     assert doc["level_check"]["margin"] is None and doc["ok"] is True
+
+
+def test_the_labellings_line_lists_each_labellings_best_registration_and_marks_the_stopped_ones():
+    from carmreg.logic.report.page import _labellings_block
+
+    hypotheses = [{"labels": ["T10", "T11", "T12"], "score": 0.60, "refined": True},
+                  {"labels": ["T11", "T12", "L1"], "score": 0.52, "refined": True},
+                  {"labels": ["T10", "T11", "T12"], "score": 0.58, "refined": True},  # its refit: the better one
+                  {"labels": ["T8", "T9", "T10"], "score": 0.95, "refined": True, "stopped_at_evaluations": 480},
+                  {"labels": ["T9", "T10", "T11"], "score": 0.9, "refined": False}]  # planned, never registered
+    check = LevelCheck("named", "confident", hypotheses=hypotheses)
+    text = " ".join(_labellings_block(check).split())
+    assert "T11-L1 0.520, T10-T12 0.580, T8-T10 0.950*." in text and "T9-T11" not in text
+    assert text.endswith("*: stopped early, too far behind to matter.")
+    hypotheses[3].pop("stopped_at_evaluations")
+    assert "*" not in _labellings_block(check)
