@@ -240,10 +240,9 @@ class CarmRegLogic:
         if state.image_polarity is not None:
             a.scores["without_clicks"] = state.image_polarity.as_dict()
         a.set_storage(gc_by_storage)
-        state.known_gc = self._known_gc(state, gc_by_storage)
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
-        state.xray_line_integral = attenuation(xray.pixels, state.mask, a.bone_dark, a.storage)
+        self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
         self._polarity_on_mirror(state, gc_by_storage)
         self._appearance_warnings(state)
@@ -271,23 +270,28 @@ class CarmRegLogic:
                                          f"({done + 1} of {total})")
 
         mirrored = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
-        a.scores["on_mirror"] = mirrored.as_dict()
+        a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
         again = decide_polarity(a.scores["database"], mirrored.scores, p.polarity, xray.bone_dark,
                                 xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
                                 refined_by=REFINED_ON_MIRROR, fits=mirrored.fits)
         if not again.clear:
             return
-        again.scores.update(at_clicks=cp.as_dict(), on_mirror=mirrored.as_dict())
+        again.scores.update(at_clicks=a.scores["at_clicks"], on_mirror=on_mirror)
         again.set_storage(gc_by_storage)
         again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
             xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
         again.set_orientation_at_clicks(stored_against_turned(cp, mirrored, MIRROR, again.polarity,
                                                               p.identify.rule).as_dict())
-        if again.orientation != MIRROR:
-            return
-        state.appearance = again
-        state.known_gc = self._known_gc(state, gc_by_storage)
-        state.xray_line_integral = attenuation(xray.pixels, state.mask, again.bone_dark, again.storage)
+        if again.orientation == MIRROR:
+            self._use_appearance(state, again, gc_by_storage)
+
+    @classmethod
+    def _use_appearance(cls, state: RegistrationState, a, gc_by_storage: dict) -> None:
+        """Take ``a`` as the X-ray's appearance: the spatial stage's GC map when already computed (``_known_gc``)
+        and the X-ray's attenuation image converted with ``a``'s polarity and storage."""
+        state.appearance = a
+        state.known_gc = cls._known_gc(state, gc_by_storage)
+        state.xray_line_integral = attenuation(state.xray.pixels, state.mask, a.bone_dark, a.storage)
 
     @staticmethod
     def _appearance_warnings(state: RegistrationState) -> None:
