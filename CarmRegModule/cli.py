@@ -207,7 +207,7 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
           f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
     clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
-    paths = save_result(result, out, xray.pixels, clicked, ct=ct, ct_landmarks=ct_lm)
+    paths = save_result(result, out, xray.pixels, clicked, ct=ct, ct_landmarks=ct_lm, draw_aside=True)
     _print_report(result, time.perf_counter() - t0, out)
     return result, paths
 

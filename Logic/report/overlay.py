@@ -43,10 +43,12 @@ def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | No
 
 
 def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool,
-                 scale: float = 1.0, interpolation: str = "lanczos") -> None:
+                 scale: float = 1.0, interpolation: str = "antialiased") -> None:
     """The composite ``rgb`` (image[row, col]) with the projected levels, their names and PDE
     (``style.level_marker``), and the clicks ({name: (u, v) px}); ``scale`` multiplies text and marker sizes
-    (1 = the report page's); ``interpolation``: matplotlib's, for an image drawn at another size than its own."""
+    (1 = the report page's); ``interpolation``: matplotlib's, for an image drawn at another size than its own
+    (the page's "antialiased": a Hanning filter where the image is shrunk; "lanczos" differed from it by 0.2 grey
+    levels on average, a little sharper, and took 0.25 s more of every report)."""
     ax.imshow(rgb, interpolation=interpolation)
     rows, cols = rgb.shape[:2]
     for lv in levels:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from carmreg.logic.io.atomic import atomic_write
+from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
 from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer
@@ -217,12 +217,22 @@ def _box(colour: str):
 def write_report_pdf(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
                      bone_dark: bool | None = None, composite_rgb: np.ndarray | None = None) -> Path:
     """Write the one-page report as a PDF, atomically (see module docstring)."""
+    return atomic_write_bytes(path, report_pdf_bytes(result, xray_pixels, clicked, bone_dark, composite_rgb))
+
+
+def report_pdf_bytes(result, xray_pixels: np.ndarray, clicked: dict | None = None, bone_dark: bool | None = None,
+                     composite_rgb: np.ndarray | None = None) -> bytes:
+    """The one-page report as the bytes of a PDF (see module docstring)."""
+    import io
+
     import matplotlib
 
     fig = report_figure(result, xray_pixels, clicked, bone_dark, composite_rgb)
     meta = {"Title": "CarmReg registration report", "Creator": "CarmReg", "Subject": NOT_FOR_DIAGNOSIS}
+    buffer = io.BytesIO()
     with matplotlib.rc_context({"pdf.fonttype": 3}):
-        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="pdf", metadata=meta))
+        fig.savefig(buffer, format="pdf", metadata=meta)
+    return buffer.getvalue()
 
 
 def write_report_png(path: str | Path, result, xray_pixels: np.ndarray, clicked: dict | None = None,
