@@ -17,6 +17,7 @@ the caller draws in order as before.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import sys
 import warnings
 from dataclasses import dataclass
@@ -58,7 +59,9 @@ def start(fn, *args) -> Aside | None:
 
 
 def _child(send, fn, args) -> None:
-    """The child: send ("value", fn(*args)), or ("error", its message) when it raised."""
+    """The child: send ("value", fn(*args)), or ("error", its message) when it raised. Ctrl-C reaches the whole
+    process group: the child ignores it (no second traceback) and the parent, stopping, kills it (``cancel``)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         message = ("value", fn(*args))
     except Exception as exc:  # the parent computes the value itself and meets the error there
@@ -81,3 +84,10 @@ def finish(aside: Aside | None, timeout_s: float = FINISH_TIMEOUT_S):
         aside.process.kill()
     aside.process.join(5.0)
     return value if kind == "value" else None
+
+
+def cancel(aside: Aside | None) -> None:
+    """Kill the child, if it is still there (the parent stopped before ``finish``: an error, Ctrl-C)."""
+    if aside is not None and aside.process.is_alive():
+        aside.process.kill()
+        aside.process.join(5.0)

@@ -261,13 +261,24 @@ against 1.9 s drawn here, median of 5 alternating runs)."""
 
 def _write_result_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None, ct,
                         ct_landmarks, draw_aside: bool = False) -> dict:
-    from carmreg.logic.io.transforms import write_tfm
     from carmreg.logic.report import aside
 
     if draw_aside:  # matplotlib (0.3 s to import) imported once, before the fork: both processes draw with it
         import matplotlib.backends.backend_agg  # noqa: F401
         import matplotlib.figure  # noqa: F401
     child = aside.start(figures, result, xray_pixels, clicked, DRAWN_ASIDE) if draw_aside else None
+    try:
+        return _write_files(result, out, xray_pixels, clicked, ct, ct_landmarks, child)
+    finally:
+        aside.cancel(child)  # gone already, unless this process stopped first
+
+
+def _write_files(result, out: Path, xray_pixels: np.ndarray, clicked: dict | None, ct, ct_landmarks,
+                 child) -> dict:
+    """Every file into ``out``; the figures of ``DRAWN_ASIDE`` from ``child`` when it is given (``aside``)."""
+    from carmreg.logic.io.transforms import write_tfm
+    from carmreg.logic.report import aside
+
     paths = {"result": atomic_write_json(out / "result.json", result_dict(result)),
              "overlay": save_png(out / "overlay.png", result_overlay_image(result, xray_pixels, clicked))}
     if result.drr_line_integral is not None:

@@ -37,6 +37,9 @@ def test_a_child_that_fails_or_stays_silent_gives_none_and_is_gone():
     t0 = time.perf_counter()
     assert aside.finish(child, timeout_s=0.5) is None
     assert time.perf_counter() - t0 < 5.0 and not child.process.is_alive()
+    child = aside.start(_hangs, 1)  # the parent stopped before collecting it (an error, Ctrl-C)
+    aside.cancel(child)
+    assert not child.process.is_alive()
 
 
 def _page_text(path) -> str:
