@@ -225,7 +225,8 @@ def save_result(result, out_dir: str | Path, xray_pixels: np.ndarray, clicked: d
 
     ``xray_pixels``: the X-ray as stored (shown as stored). Given the CT (``Volume``) and its ``Landmarks3D``,
     also the 3D Slicer scene ``slicer/CarmReg.mrml`` with its files (``slicer_scene``). ``draw_aside``: draw the
-    figures in a forked child process meanwhile (``aside``; the command line: ~0.5 s less, the same files)."""
+    report page and the convergence plot in a forked child process meanwhile (``aside``, ``DRAWN_ASIDE``; the
+    command line: ~0.4 s less; the same files, the PDF's creation time aside)."""
     target = Path(out_dir)
     try:
         with FolderTransaction(target, owned_names=RESULT_FILES) as out:

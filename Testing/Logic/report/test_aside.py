@@ -42,6 +42,24 @@ def test_a_child_that_fails_or_stays_silent_gives_none_and_is_gone():
     assert not child.process.is_alive()
 
 
+def _big_after(seconds: float) -> bytes:
+    time.sleep(seconds)
+    return bytes(4_000_000)  # far more than a pipe holds: the send blocks until read
+
+
+def test_the_child_ignores_ctrl_c_and_exits_when_the_parent_is_gone():
+    import signal
+
+    child = aside.start(_big_after, 0.5)
+    time.sleep(0.2)
+    os.kill(child.process.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group; the parent handles it
+    assert len(aside.finish(child)) == 4_000_000
+    child = aside.start(_big_after, 0.3)
+    child.receive.close()  # as when the parent dies: nobody reads; the child must not wait forever
+    child.process.join(10.0)
+    assert not child.process.is_alive()
+
+
 def _page_text(path) -> str:
     text = pypdf.PdfReader(str(path)).pages[0].extract_text()
     return "\n".join(line for line in text.splitlines() if "made" not in line.lower())  # the time it was made
