@@ -28,8 +28,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+from curve_tables import EVALUATIONS, still_to_come_table, value_after
 
-EVALUATIONS = (160, 240, 320, 480, 640)
 ROLES = {"_polarity_on_mirror": "polarity on the mirror", "judged_also": "polarity with the winner",
          "polarity_at_clicks": "polarity", "orientation_at_clicks": "orientation"}
 
@@ -53,8 +53,7 @@ def read_curves(folder: Path) -> list[dict]:
 
 def _gc_at(curve: list, e: int) -> float | None:
     """GC at the best objective after e evaluations (None before the first generation)."""
-    k = int(np.searchsorted([c[0] for c in curve], e, side="right")) - 1
-    return curve[k][2] if k >= 0 else None
+    return value_after([c[0] for c in curve], [c[2] for c in curve], e)
 
 
 def with_outcome(curves: list[dict]) -> list[dict]:
@@ -119,12 +118,7 @@ def main(argv=None) -> int:
     found = gains(curves)
     roles = {r: sum(c["role"] == r for c in curves) for r in ROLES.values()}
     print(f"{len({c['run'] for c in curves})} runs, {len(curves)} check registrations: {roles}")
-    print("| after e evaluations | GC still to come, every one: median / 95th pct / max | the losers': max |\n"
-          "|---|---|---|")
-    for e in EVALUATIONS:
-        every, losers = (np.asarray(x) for x in found[e])
-        print(f"| {e} | {np.median(every):.3f} / {np.percentile(every, 95):.3f} / {every.max():.3f} | "
-              f"{losers.max() if losers.size else float('nan'):.3f} |")
+    print(still_to_come_table(found, "GC still to come", "every one", "the losers'"))
     delta = {e: args.safety * max(found[e][0]) + args.margin for e in EVALUATIONS}
     saved, losers, total = oracle_savings(curves, delta, args.lead)
     print(f"optimistic bound (a loser stops once its GC + {args.safety:g} x the largest gain seen + {args.margin:g} "

@@ -23,9 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
-EVALUATIONS = (160, 240, 320, 480, 640)
+from curve_tables import EVALUATIONS, still_to_come_table, value_after
 
 
 def read_runs(work: Path) -> list[dict]:
@@ -47,9 +45,7 @@ def read_runs(work: Path) -> list[dict]:
 
 def _at(curve: list, e: int) -> float | None:
     """The best objective after e evaluations (None before the first generation)."""
-    evaluations, objective = curve
-    k = int(np.searchsorted(evaluations, e, side="right")) - 1
-    return objective[k] if k >= 0 else None
+    return value_after(*curve, e)
 
 
 def improvements(runs: list[dict]) -> dict:
@@ -97,12 +93,7 @@ def main(argv=None) -> int:
         args.save.write_text(json.dumps(runs, separators=(",", ":")))
     found = improvements(runs)
     print(f"{len(runs)} runs, {sum(len(h['curves']) for r in runs for h in r['hypotheses'])} refinements")
-    print("| after e evaluations | improvement still to come, every start: median / 95th pct / max | the winners' "
-          "starts: max |\n|---|---|---|")
-    for e in EVALUATIONS:
-        every, winners = (np.asarray(x) for x in found[e])
-        print(f"| {e} | {np.median(every):.3f} / {np.percentile(every, 95):.3f} / {every.max():.3f} | "
-              f"{winners.max():.3f} |")
+    print(still_to_come_table(found, "improvement still to come", "every start", "the winners' starts"))
     delta = {e: args.safety * max(found[e][0]) + args.margin for e in EVALUATIONS}
     saved, total = oracle_savings(runs, delta)
     print(f"optimistic bound (a start stops once it trails the winner's final score by {args.safety:g} x the largest "
