@@ -28,7 +28,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from curve_tables import EVALUATIONS, still_to_come_table, value_after
+from curve_tables import EVALUATIONS, allowances, extract, still_to_come_table, value_after
 
 ROLES = {"_polarity_on_mirror": "polarity on the mirror", "judged_also": "polarity with the winner",
          "polarity_at_clicks": "polarity", "orientation_at_clicks": "orientation"}
@@ -111,16 +111,12 @@ def main(argv=None) -> int:
     parser.add_argument("--margin", type=float, default=0.05, help="T: plus this (GC)")
     parser.add_argument("--lead", type=float, default=0.30, help="the lead the verdict needs (GC)")
     args = parser.parse_args(argv)
-    curves = json.loads(args.load.read_text()) if args.load else read_curves(args.folder)
-    if args.save:
-        args.save.write_text(json.dumps(curves, separators=(",", ":")))
-    curves = with_outcome(curves)
+    curves = with_outcome(extract(args.load, args.save, lambda: read_curves(args.folder)))
     found = gains(curves)
     roles = {r: sum(c["role"] == r for c in curves) for r in ROLES.values()}
     print(f"{len({c['run'] for c in curves})} runs, {len(curves)} check registrations: {roles}")
     print(still_to_come_table(found, "GC still to come", "every one", "the losers'"))
-    delta = {e: args.safety * max(found[e][0]) + args.margin for e in EVALUATIONS}
-    saved, losers, total = oracle_savings(curves, delta, args.lead)
+    saved, losers, total = oracle_savings(curves, allowances(found, args.safety, args.margin), args.lead)
     print(f"optimistic bound (a loser stops once its GC + {args.safety:g} x the largest gain seen + {args.margin:g} "
           f"trails the winner's final GC - {args.lead:g}): {saved} of the losers' {losers} evaluations saved, "
           f"{saved / max(total, 1):.0%} of all {total} check evaluations")

@@ -4,9 +4,26 @@ what was still to come after them. Not a test."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 EVALUATIONS = (160, 240, 320, 480, 640)
+
+
+def extract(load: Path | None, save: Path | None, read):
+    """The curves: from a stored extract (``load``), else ``read()`` from a benchmark's files; written as a compact
+    JSON extract to ``save`` when given."""
+    curves = json.loads(load.read_text()) if load else read()
+    if save:
+        save.write_text(json.dumps(curves, separators=(",", ":")))
+    return curves
+
+
+def allowances(found: dict, safety: float, margin: float) -> dict:
+    """{e: ``safety`` x the largest gain still to come after e in ``found`` (every curve's) + ``margin``}."""
+    return {e: safety * max(found[e][0]) + margin for e in EVALUATIONS}
 
 
 def value_after(evaluations: list, values: list, e: int):

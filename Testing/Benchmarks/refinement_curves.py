@@ -23,7 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
-from curve_tables import EVALUATIONS, still_to_come_table, value_after
+from curve_tables import EVALUATIONS, allowances, extract, still_to_come_table, value_after
 
 
 def read_runs(work: Path) -> list[dict]:
@@ -88,14 +88,11 @@ def main(argv=None) -> int:
                         help="stop only when a start trails by more than this times the largest improvement seen")
     parser.add_argument("--margin", type=float, default=0.0, help="... plus this (objective units)")
     args = parser.parse_args(argv)
-    runs = json.loads(args.load.read_text()) if args.load else read_runs(args.work)
-    if args.save:
-        args.save.write_text(json.dumps(runs, separators=(",", ":")))
+    runs = extract(args.load, args.save, lambda: read_runs(args.work))
     found = improvements(runs)
     print(f"{len(runs)} runs, {sum(len(h['curves']) for r in runs for h in r['hypotheses'])} refinements")
     print(still_to_come_table(found, "improvement still to come", "every start", "the winners' starts"))
-    delta = {e: args.safety * max(found[e][0]) + args.margin for e in EVALUATIONS}
-    saved, total = oracle_savings(runs, delta)
+    saved, total = oracle_savings(runs, allowances(found, args.safety, args.margin))
     print(f"optimistic bound (a start stops once it trails the winner's final score by {args.safety:g} x the largest "
           f"improvement seen + {args.margin:g}): {saved} of {total} coarse-refinement evaluations saved "
           f"({saved / total:.0%})")
