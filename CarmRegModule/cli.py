@@ -218,9 +218,14 @@ def _print_report(result, seconds: float, out) -> None:
         m = f"{s.mpde_mm:9.2f}" if s.mpde_mm is not None else "        -"
         print(f"  {s.name:<10}{m}   {s.seconds:7.2f}")
     in_image = [lv for lv in result.levels if lv["in_image"]]
-    print("levels on the X-ray: " + ", ".join(
-        f"{lv['label']}{'*' if lv['fitted'] else ''} ({lv['uv_px'][0]:.0f}, {lv['uv_px'][1]:.0f})"
-        for lv in in_image) + "   (* = clicked)")
+    from carmreg.logic.report.style import names_shown
+
+    if names_shown(result.level_check):
+        print("levels on the X-ray: " + ", ".join(
+            f"{lv['label']}{'*' if lv['fitted'] else ''} ({lv['uv_px'][0]:.0f}, {lv['uv_px'][1]:.0f})"
+            for lv in in_image) + "   (* = clicked)")
+    else:
+        print("levels on the X-ray: none named (the image was refused, below)")
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
     if result.appearance is not None:

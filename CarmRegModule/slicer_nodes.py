@@ -161,13 +161,18 @@ def set_image_on_xray_grid(volume_node, image, xray_node):
 
 
 def set_projected_levels(markups_node, result, xray_node):
-    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0))."""
+    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0));
+    with a "?" after each name when the answer withholds the names (``style.unsure_name``: the X-ray refused)."""
+    from carmreg.logic.report.style import unsure_name
+
     markups_node.RemoveAllControlPoints()
     matrix = ijk_to_ras(xray_node)
+    check = getattr(result, "level_check", None)
     for level in result.levels:
         u, v = level["uv_px"]
         ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
-        index = markups_node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]), level["label"])
+        index = markups_node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]),
+                                             unsure_name(level["label"], check))
         markups_node.SetNthControlPointDescription(
             index, ("fitted" if level["fitted"] else "not fitted")
             + (f", PDE {level['pde_mm']:.2f} mm" if level.get("pde_mm") is not None else ""))
@@ -249,8 +254,9 @@ def show_result(scene, parameter_node, result, xray):
 
 
 def result_summary(result):
-    """A few lines for the panel: status, the level answer, mPDE per stage."""
-    from carmreg.logic.report.style import level_banner
+    """A few lines for the panel: status, the level answer, mPDE per stage (and the PDE per clicked level, unless
+    the answer withholds the names)."""
+    from carmreg.logic.report.style import level_banner, names_shown
 
     lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.warnings)]
     banner = level_banner(result.level_check)
@@ -259,6 +265,6 @@ def result_summary(result):
     lines += [f"{s.name}: mPDE {s.mpde_mm:.2f} mm, {s.seconds:.1f} s" for s in result.stages
               if s.mpde_mm is not None]
     fitted = [f"{lv['label']} {lv['pde_mm']:.2f} mm" for lv in result.levels if lv.get("pde_mm") is not None]
-    if fitted:
+    if fitted and names_shown(result.level_check):
         lines.append("PDE per clicked level: " + ", ".join(fitted))
     return "\n".join(lines)

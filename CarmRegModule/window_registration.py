@@ -211,7 +211,7 @@ class WindowRegistration:
     def set_result(self, result) -> None:
         """Show a RegistrationResult: overlay, per-level PDE, level identification, stage figures, C-arm in 3D."""
         from carmreg.logic.report.page import drawn_mpde_mm
-        from carmreg.logic.report.style import answer_banner
+        from carmreg.logic.report.style import answer_banner, names_shown
 
         self.result, self.result_stale = result, False
         clicks = self.shown_clicks()
@@ -224,7 +224,8 @@ class WindowRegistration:
         bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary, banner,
-                                     contradicted=bool(check and check.contradicted))
+                                     contradicted=bool(check and check.contradicted),
+                                     names_withheld=not names_shown(check))
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)
         self.result_panel.set_result(result, [self.xray_store.display_name(pid) for pid in ids])
@@ -293,6 +294,8 @@ class WindowRegistration:
         reason = ""
         if self.result is not None and self.result_stale:
             reason = "The clicks changed since this result: register again"
+        elif self.result is not None and getattr(self.result.level_check, "withheld", ""):
+            reason = "No level was named: the X-ray was refused (see the result)"
         elif self.result is None or not self.assigned_names:
             reason = "No level names were assigned: register first"
         elif not self.names_to_accept():

@@ -261,3 +261,22 @@ def _to_parent(transform_node):
     m = vtk.vtkMatrix4x4()
     transform_node.GetMatrixTransformToParent(m)
     return m
+
+
+def test_a_refused_images_projected_levels_in_slicer_carry_a_question_mark(mrml, sample_nodes):
+    """Names withheld (the X-ray refused): the live Slicer scene's projected levels are named "T11?" ..., and the
+    panel's summary gives no per-level PDE."""
+    from types import SimpleNamespace
+
+    from carmreg.logic.registration.level_check import LevelCheck
+
+    scene, nodes = mrml[0], _module().slicer_nodes()
+    check = LevelCheck("unnamed", "ambiguous", assigned_labels=["T11", "T12"]).withheld_for("display mirrored")
+    levels = [{"label": lb, "uv_px": [10.0 * i, 20.0], "fitted": i < 2, "pde_mm": 1.0 if i < 2 else None}
+              for i, lb in enumerate(["T11", "T12", "L1"])]
+    result = SimpleNamespace(levels=levels, level_check=check, ok=False, warnings=["display mirrored"], stages=[])
+    markups = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "refused")
+    nodes.set_projected_levels(markups, result, sample_nodes["xray"])
+    assert [markups.GetNthControlPointLabel(i) for i in range(3)] == ["T11?", "T12?", "L1?"]
+    summary = nodes.result_summary(result)
+    assert "IMAGE REFUSED - NO LEVEL NAMED" in summary and "PDE per clicked level" not in summary

@@ -230,7 +230,9 @@ class ResultPanel(QtWidgets.QWidget):
         labels = list(check.assigned_labels)
         names = list(click_names or [])
         visible = list(check.visible_labels)
-        if labels and len(names) == len(labels):
+        if check.withheld:
+            self.level_assigned_label.setText("none: the X-ray was refused")
+        elif labels and len(names) == len(labels):
             self.level_assigned_label.setText(arrow_list(names, labels))
         elif labels:
             self.level_assigned_label.setText(", ".join(labels))

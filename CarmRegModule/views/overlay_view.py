@@ -41,16 +41,19 @@ class OverlayView(ImageCanvas):
         self.summary = ""
         self.banner: tuple[str, str, str] | None = None  # (headline, reason, colour) of the level answer
         self.contradicted = False
+        self.names_withheld = False  # the answer names no level (the X-ray refused): markers without names
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "",
-                   banner: tuple[str, str, str] | None = None, contradicted: bool = False) -> None:
+                   banner: tuple[str, str, str] | None = None, contradicted: bool = False,
+                   names_withheld: bool = False) -> None:
         """``summary``: the header line (mPDE of the pose drawn, magnification); ``banner``: the level answer
         (headline, reason, colour) drawn across the top; ``contradicted``: the image contradicts the names of
-        the fitted levels, which are then drawn in red with a "?"."""
+        the fitted levels, which are then drawn in red with a "?"; ``names_withheld``: the answer names no level
+        (``style.names_shown``), so no name is drawn, whatever "Names" says."""
         from carmreg.logic.image.field import field_mask
 
-        self.banner, self.contradicted = banner, bool(contradicted)
+        self.banner, self.contradicted, self.names_withheld = banner, bool(contradicted), bool(names_withheld)
 
         mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
@@ -63,6 +66,7 @@ class OverlayView(ImageCanvas):
     def clear(self) -> None:
         self._xray01 = self._drr01 = None
         self.levels, self.clicks, self.summary, self.banner, self.contradicted = [], {}, "", None, False
+        self.names_withheld = False
         self.set_image(None)
 
     def set_mode(self, mode: str) -> None:
@@ -93,7 +97,8 @@ class OverlayView(ImageCanvas):
             if not level.get("in_image", True):
                 continue  # listed in the corner text instead
             u, v = level["uv_px"]
-            marker = level_marker(level, self.contradicted, self.show_names)  # the report page's style
+            marker = level_marker(level, self.contradicted,  # the report page's style
+                                  self.show_names and not self.names_withheld)
             specs.append(MarkerSpec(("level", level["label"]), u, v, marker.text,
                                     "fitted" if marker.fitted else "check", 1.0, marker.colour))
         for label, uv in self.clicks.items():
@@ -119,7 +124,7 @@ class OverlayView(ImageCanvas):
                     "edges": "DRR bone edges on X-ray"}[self.mode]
             lines = [f"Overlay: {mode}"] + ([self.summary] if self.summary else [])
             outside = [lv["label"] for lv in self.levels if not lv.get("in_image", True)]
-            if outside:
+            if outside and not self.names_withheld:
                 lines.append(f"outside the image: {', '.join(outside)}")
             texts["tl"], texts["tr"], texts["bl"] = "\n".join(lines), "", ""
         return texts

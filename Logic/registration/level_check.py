@@ -10,7 +10,8 @@ None or inf when there was no other); ``message`` the answer in words; ``reasons
 ambiguous; ``checks`` the confidence rule's evidence and verdicts; ``assigned_labels`` the name of each identified
 click, in the order of ``click_indices`` (indices into the clicks as given); ``winner_labels`` /
 ``runner_up_labels`` the best labelling and the best other, head to sacrum; ``visible_labels`` (no clicks) the
-levels in the exposed field at the winning pose; ``hypotheses`` every labelling tried (``LabellingFit.as_dict``).
+levels in the exposed field at the winning pose; ``hypotheses`` every labelling tried (``LabellingFit.as_dict``);
+``withheld`` why no level is named ("" when the names stand): the X-ray was refused (``withheld_for``).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class LevelCheck:
     runner_up_labels: list | None = None
     visible_labels: list = field(default_factory=list)
     hypotheses: list = field(default_factory=list)
+    withheld: str = ""
 
     @property
     def contradicted(self) -> bool:
@@ -41,6 +43,15 @@ class LevelCheck:
     def names(self) -> list[str]:
         """The levels the answer names: those in view without clicks, else the clicks' assigned names."""
         return list(self.visible_labels if self.mode == "image_only" else self.assigned_labels)
+
+    def withheld_for(self, reason: str) -> LevelCheck:
+        """This answer with no level named, because of ``reason`` (the X-ray refused: a mirrored or turned
+        display, on which a pose and names are a guess under the wrong geometry): status ambiguous, whatever the
+        contest said (it judged the image as stored). The margin, checks, winner, runner-up and hypotheses stay,
+        as the record of what the contest found; the names given to the clicks or seen in the image are dropped,
+        so no front door shows or offers them."""
+        return dataclasses.replace(self, status="ambiguous", assigned_labels=[], visible_labels=[], withheld=reason,
+                                   message=f"level names WITHHELD: {reason}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

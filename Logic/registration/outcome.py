@@ -1,6 +1,10 @@
 """The outcome of a registration (``build_result``): the final pose, every CT level projected on the X-ray (pixel
 (column, row), clicked levels with their projection distance in detector mm), the level check, and the checks
 that make ``ok`` False with the reason in words (``result_problems``).
+
+An X-ray refused for its display (``refused_display``: it matches the CT best mirrored or turned) names no level:
+its level check is ``withheld_for`` that reason, since a pose and names found on the image as stored are a guess
+under the wrong geometry (the appearance benchmark's mirrored displays: named right about half the time).
 """
 
 from __future__ import annotations
@@ -33,6 +37,10 @@ def build_result(state: RegistrationState) -> RegistrationResult:
                        "clicked_uv_px": [float(x) for x in clicked[label]] if label in clicked else None,
                        "name_margin": named.get(label)})
     problems = result_problems(state, pose)
+    check = level_check(state)
+    warnings = state.warnings + problems
+    if check is not None and check.withheld:  # the levels stage's own warning speaks of names no longer given
+        warnings = [w for w in warnings if w != state.identification.message]
     spatial = state.spatial
     return RegistrationResult(
         pose=pose, projection_matrix=P, geometry=state.geometry, stages=list(state.stages), levels=levels,
@@ -42,13 +50,32 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         similarity_maps=spatial.maps if spatial else {},
         database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
         if state.database else {},
-        ok=not problems, warnings=state.warnings + problems, parameters=state.parameters,
-        level_check=state.identification.summary() if state.identification else None,
+        ok=not problems, warnings=warnings, parameters=state.parameters, level_check=check,
         appearance=state.appearance, field_mask=state.mask,
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                 "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
                 "xray_frame": state.xray.meta.get("frame"),
                 "xray_frames_in_file": state.xray.meta.get("n_frames")})
+
+def level_check(state: RegistrationState):
+    """The levels stage's answer as recorded (``LevelIdentification.summary``), its names withheld when the
+    X-ray's display is refused (``refused_display``); None when the stage did not run."""
+    if state.identification is None:
+        return None
+    check, refused = state.identification.summary(), refused_display(state.appearance)
+    return check.withheld_for(refused) if refused else check
+
+
+def refused_display(a) -> str:
+    """Why the X-ray is refused, in words, when its appearance ``a`` matches the CT best mirrored or turned
+    (``image.appearance``: ``orientation`` other than as stored); "" otherwise."""
+    if a is None or a.orientation == "as-stored":
+        return ""
+    best, stored = a.orientation_gc()
+    return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {stored:.2f} "
+            "as stored): the display is mirrored or rotated; export the image as acquired (head up, patient's "
+            "right on the viewer's left) and register again")
+
 
 def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
     """The pipeline's own sanity checks; any message here makes ``ok`` False."""
@@ -67,13 +94,10 @@ def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
                         "spacing and the landmarks")
     if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
         problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
-    a = state.appearance
-    if a is not None and a.orientation != "as-stored":
-        best, stored = a.orientation_gc()
-        problems.append(f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against "
-                        f"{stored:.2f} as stored): the display is mirrored or rotated; export the image as "
-                        "acquired (head up, patient's right on the viewer's left) and register again")
-    if state.identification is not None and state.identification.status == "contradicted":
+    refused = refused_display(state.appearance)
+    if refused:
+        problems.append(refused)
+    if not refused and state.identification is not None and state.identification.status == "contradicted":
         problems.append(state.identification.message)
     lo_tx, hi_tx = tx_limits(state.geometry, *p.magnification_range)
     if not lo_tx - 1 <= pose.tx_mm <= hi_tx + 1:

@@ -20,7 +20,7 @@ import numpy as np
 
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.composite import blend, normalise, xray_bone_bright
-from carmreg.logic.report.style import CLICK_COLOUR, answer_banner, level_marker
+from carmreg.logic.report.style import CLICK_COLOUR, answer_banner, level_marker, names_shown
 
 OVERLAY_INCHES = 4.8        # the longer side of the overlay on the report page
 RENDER_DPI = 100.0
@@ -43,9 +43,10 @@ def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | No
 
 
 def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool,
-                 scale: float = 1.0, interpolation: str = "antialiased") -> None:
+                 scale: float = 1.0, interpolation: str = "antialiased", names: bool = True) -> None:
     """The composite ``rgb`` (image[row, col]) with the projected levels, their names and PDE
-    (``style.level_marker``), and the clicks ({name: (u, v) px}); ``scale`` multiplies text and marker sizes
+    (``style.level_marker``; ``names`` False: markers only, ``style.names_shown``), and the clicks ({name: (u, v)
+    px}); ``scale`` multiplies text and marker sizes
     (1 = the report page's); ``interpolation``: matplotlib's, for an image drawn at another size than its own
     (the page's "antialiased": a Hanning filter where the image is shrunk; "lanczos" differed from it by 0.2 grey
     levels on average, a little sharper, and took 0.25 s more of every report)."""
@@ -53,7 +54,7 @@ def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, 
     rows, cols = rgb.shape[:2]
     for lv in levels:
         if lv.get("in_image", True):
-            _draw_level(ax, lv, level_marker(lv, contradicted), scale)
+            _draw_level(ax, lv, level_marker(lv, contradicted, names), scale)
     for uv in (clicked or {}).values():
         ax.plot(float(uv[0]), float(uv[1]), "+", ms=9 * scale, mew=1.3 * scale, color=CLICK_COLOUR)
     ax.set_xlim(-0.5, cols - 0.5)
@@ -70,6 +71,8 @@ def _draw_level(ax, level: dict, marker, scale: float) -> None:
         ax.plot(u, v, "o", ms=5.5 * scale, color=marker.colour, mec="black", mew=0.6 * scale)
     else:
         ax.plot(u, v, "o", ms=7 * scale, mfc="none", mec=marker.colour, mew=1.4 * scale)
+    if not marker.text:
+        return
     ax.annotate(marker.text, (u, v), xytext=(9 * scale, -3 * scale), textcoords="offset points",
                 color=marker.colour, fontsize=LABEL_POINTS * scale, fontweight="bold",
                 bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55, "ec": "none"})
@@ -103,7 +106,8 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     ax.set_axis_off()
     # one output pixel per image pixel: "nearest" copies them (lanczos gave the same to 1 grey level, 4x slower)
-    draw_overlay(ax, rgb, levels, clicked, bool(level_check and level_check.contradicted), scale, "nearest")
+    draw_overlay(ax, rgb, levels, clicked, bool(level_check and level_check.contradicted), scale, "nearest",
+                 names_shown(level_check))
     banner = answer_banner(level_check, ok, list(warnings))
     if banner is not None:
         _draw_banner(ax, banner, scale, rows, cols)

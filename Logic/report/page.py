@@ -35,7 +35,7 @@ import numpy as np
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
-from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer
+from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer, names_shown
 
 A4_INCHES = (8.27, 11.69)
 NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
@@ -52,8 +52,11 @@ def drawn_mpde_mm(levels: list[dict]) -> float | None:
 
 # ----------------------------------------------------------------------------------------------- text blocks
 
-def _levels_block(levels: list[dict]) -> str:
-    """The levels projected into the image (head to sacrum), then the names of those outside it."""
+def _levels_block(levels: list[dict], check: LevelCheck | None = None) -> str:
+    """The levels projected into the image (head to sacrum), then the names of those outside it; none when the
+    answer withholds the names (``style.names_shown``)."""
+    if not names_shown(check):
+        return _wrap("No level is named: " + check.withheld, 38)
     lines = ["level  clicked  PDE mm  (u, v) px"]
     for lv in levels:
         if not lv.get("in_image", True):
@@ -127,6 +130,8 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
         text += " Labellings registered, score (lower is better): " + ", ".join(parts) + "."
         if any(h.get("stopped_at_evaluations") for h in shown):
             text += " *: stopped early, too far behind to matter."
+        if check.withheld:
+            text += " They were judged on the image as stored, which was refused: a record, not an answer."
     return _wrap(text, 110)
 
 
@@ -183,14 +188,14 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.text(0.015, 0.56, _wrap(text, 128), fontsize=7.2, color="white", va="top", transform=banner.transAxes)
 
     ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))
-    draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted")
+    draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted", names=names_shown(check))
     fig.text(0.05, 0.438, "Overlay: X-ray (grey, bone bright) + DRR at the found pose (amber). Green disc: level "
              "used by the fit, with its\nPDE to the click; yellow ring: level not clicked; red cross: click"
              + ("; red '?': name contradicted." if status == "contradicted" else "."), fontsize=6.8, va="top",
              color="#343a40")
 
     fig.text(0.655, 0.853, "Named levels (projected)", fontsize=9, fontweight="bold", va="top")
-    fig.text(0.655, 0.835, _levels_block(doc["levels"]), **mono)
+    fig.text(0.655, 0.835, _levels_block(doc["levels"], check), **mono)
     fig.text(0.05, 0.39, "Pose and accuracy", fontsize=9, fontweight="bold", va="top")
     fig.text(0.05, 0.372, _pose_block(doc, drawn), **mono)
     fig.text(0.05, 0.285, "Inputs and geometry (value <- where it came from)", fontsize=9, fontweight="bold",

@@ -15,7 +15,9 @@ node (name)            file                         what
 ``X-ray clicks``       ``xray_points.mrk.json``     the clicks on the X-ray, on the detector plane (LPS mm;
                                                     exact ``uv_px`` under ``carmreg``)
 ``Projected levels``   ``projected_levels.mrk.json``  every CT-labelled level's centroid projected by P onto
-                                                    the detector plane, named (``uv_px``, fitted, PDE)
+                                                    the detector plane, named (``uv_px``, fitted, PDE);
+                                                    on a refused X-ray (names withheld) every name on the
+                                                    detector plane ends in "?" (``style.unsure_name``)
 ``C-arm`` transform    ``carm.tfm``                 ITK ``lps_to_camera`` (see ``io.transforms``): Slicer's
                                                     transform node then maps the camera frame (x, y flipped
                                                     as Slicer does for LPS files) to RAS; its translation is
@@ -43,6 +45,7 @@ from carmreg.logic.io.landmarks import write_landmarks_3d, write_markups_lps
 from carmreg.logic.io.nrrd_volume import write_volume_nrrd
 from carmreg.logic.io.transforms import write_tfm
 from carmreg.logic.report.result_files import detector_ijk_to_lps, write_detector_nrrd, write_drr_nrrd
+from carmreg.logic.report.style import unsure_name
 
 SCENE_FOLDER = "slicer"
 SCENE_FILE = "CarmReg.mrml"
@@ -78,7 +81,8 @@ def write_scene_files(folder: Path, result, ct, ct_landmarks, xray_pixels: np.nd
     result's DRR already written by ``write_drr_nrrd`` (copied, not encoded again)."""
     pixels = np.asarray(xray_pixels)
     pixel_type = pixels.dtype if pixels.dtype.kind in "iu" else np.float32
-    clicks = _clicks(result, clicked)
+    check = getattr(result, "level_check", None)
+    clicks = {unsure_name(label, check): uv for label, uv in _clicks(result, clicked).items()}
     levels = list(result.levels)
     files = {
         "ct": write_volume_nrrd(folder / "ct.nrrd", ct),
@@ -90,7 +94,7 @@ def write_scene_files(folder: Path, result, ct, ct_landmarks, xray_pixels: np.nd
                                          detector_points_lps(result, list(clicks.values())),
                                          [{"uv_px": [float(x) for x in uv]} for uv in clicks.values()]),
         "projected_levels": write_markups_lps(
-            folder / "projected_levels.mrk.json", [lv["label"] for lv in levels],
+            folder / "projected_levels.mrk.json", [unsure_name(lv["label"], check) for lv in levels],
             detector_points_lps(result, [lv["uv_px"] for lv in levels]),
             [{"uv_px": [float(x) for x in lv["uv_px"]], "fitted": bool(lv["fitted"]),
               "in_image": bool(lv.get("in_image", True)), "pde_mm": lv.get("pde_mm")} for lv in levels]),

@@ -6,7 +6,9 @@ Colours are hex strings (``#rrggbb``). Each status of the level answer has two s
   the banner of ``overlay.png``);
 - ``ink``: text and markers on a dark background (the window's panels, names drawn on an X-ray).
 
-``level_answer`` and ``answer_banner`` give the level answer in words and its colour, for every banner.
+``level_answer`` and ``answer_banner`` give the level answer in words and its colour, for every banner. An answer
+whose names are withheld (``LevelCheck.withheld``: the X-ray refused) is told in the contradiction colour, and no
+front door writes a level name on the X-ray then (``names_shown``; the 3D Slicer scene's points get a "?").
 
 Markers on an overlay (positions (u, v) = (column, row) detector px): a filled disc for a level the fit used,
 named with its PDE (detector mm) to the click, in ``FITTED_COLOUR`` - or, when the image contradicts the given
@@ -40,9 +42,20 @@ STATUS_COLOURS: dict[str | None, StatusColour] = {
 STATUS_WORDS = {"confident": "LEVELS CONFIRMED BY THE IMAGE", "proposed": "LEVELS PROPOSED (NOT CONFIRMED)",
                 "ambiguous": "LEVELS AMBIGUOUS", "contradicted": "LEVEL NAMES CONTRADICTED BY THE IMAGE",
                 None: "LEVEL NAMES NOT CHECKED"}
+WITHHELD_WORDS = "IMAGE REFUSED - NO LEVEL NAMED"
 FITTED_COLOUR = "#40c057"
 CHECK_COLOUR = "#ffd228"
 CLICK_COLOUR = "#ff4d4d"
+
+
+def names_shown(check: LevelCheck | None) -> bool:
+    """Whether level names may be written on the X-ray: not when the answer withholds them."""
+    return not (check and check.withheld)
+
+
+def unsure_name(label: str, check: LevelCheck | None) -> str:
+    """A level's name where it must be written (a 3D Slicer point's name): with a "?" when names are withheld."""
+    return label if names_shown(check) else f"{label}?"
 
 
 def status_fill(status: str | None) -> str:
@@ -88,6 +101,8 @@ def level_answer(check: LevelCheck | None, ok: bool = True, detail: bool = True)
     """(headline, reason, colour) of the level answer for the page and the window's banner; ``detail`` adds
     the margin and how to read it to the reason."""
     status = check.status if check else None
+    if check and check.withheld:
+        return WITHHELD_WORDS, check.message, status_fill("contradicted")
     headline = STATUS_WORDS.get(status, str(status).upper())
     names = ", ".join(check.names()) if check else ""
     if check and check.mode == "image_only":
@@ -112,7 +127,7 @@ def answer_banner(level_check: LevelCheck | None, ok: bool, warnings: list[str])
     if not level_check and ok:
         return None
     headline, reason, colour = level_answer(level_check, ok, detail=False)
-    if not ok and not (level_check and level_check.contradicted):
+    if not ok and not (level_check and (level_check.contradicted or level_check.withheld)):
         headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
     return headline, reason, colour
 
@@ -132,6 +147,8 @@ def level_banner(check: LevelCheck | None) -> tuple[str, tuple[int, int, int]] |
     the status's colour on a dark background (``status_ink``) as (r, g, b)."""
     if not check:
         return None
+    if check.withheld:
+        return f"Levels: {WITHHELD_WORDS}", hex_rgb(status_ink("contradicted"))
     text = f"Levels from {MODE_TEXT.get(check.mode, check.mode)}: {check.status.upper()}"
     margin, runner = check.margin, check.runner_up_labels
     if margin is not None and math.isfinite(margin):
@@ -144,6 +161,8 @@ def level_summary(check: LevelCheck) -> str:
     """The levels stage in two lines for the command line: which names, from what, how sure (margin = score of
     the best other labelling minus the chosen one's; the objective is 1 - gradient correlation + landmark
     terms)."""
+    if check.withheld:
+        return f"level identification: {check.message}"
     if check.mode == "image_only":
         what = f"levels in view (from the image alone): {', '.join(check.visible_labels) or 'none'}"
     elif check.mode == "named":

@@ -119,6 +119,26 @@ def test_confident_names_stay_green_with_a_green_banner(xray_window):
     assert win.result_panel.accept_button.text() == "Accept assigned names"
 
 
+def test_a_refused_image_shows_no_level_name_and_offers_none(xray_window):
+    """The X-ray refused (a mirrored display): the overlay draws its markers without names (whatever "Names"
+    says), the banner says why in red, the level box names nothing and no names are offered."""
+    win = xray_window
+    _three_named_clicks(win)
+    result = _named_result(win, ["T10", "T11", "T12"], [1.0, 1.0, 1.0])
+    result.level_check = result.level_check.withheld_for("the display is mirrored or rotated")
+    result.ok, result.warnings = False, ["the display is mirrored or rotated"]
+    win.set_result(result)
+    levels = [s for s in win.overlay_view.markers().values() if s.key[0] == "level"]
+    assert len(levels) == 4 and all(s.text == "" for s in levels)
+    headline, reason, colour = win.overlay_view.banner
+    assert headline == "IMAGE REFUSED - NO LEVEL NAMED" and colour == "#c92a2a" and "mirrored" in reason
+    rp = win.result_panel
+    assert rp.level_assigned_label.text() == "none: the X-ray was refused"
+    assert not rp.accept_button.isEnabled() and not win.act_accept_names.isEnabled()
+    assert "refused" in rp.accept_button.toolTip() and not win.assigned_names
+    assert sorted(spec.text for spec in win.xray_view.markers().values()) == ["T10", "T11", "T12"]  # the user's
+
+
 # ------------------------------------------------------------------------------------------- 3. zoom
 
 def test_wheel_zoom_keeps_the_point_under_the_cursor(xray_window):

@@ -377,5 +377,10 @@ def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct
     result = CarmRegLogic().register(ct, centroids, mirrored, Landmarks2D([None] * len(uv), uv), params)
     assert result.appearance.orientation != "as-stored" or not result.appearance.orientation_clear
     assert result.level_check.status != "confident"
-    if result.appearance.orientation != "as-stored":
+    if result.appearance.orientation != "as-stored":  # refused: no level named, the contest kept as a record
         assert not result.ok and any("mirrored or rotated" in w for w in result.warnings)
+        check = result.level_check
+        assert "mirrored or rotated" in check.withheld and check.assigned_labels == [] and check.names() == []
+        assert check.winner_labels and not any(w.startswith("level names") for w in result.warnings)
+    else:
+        assert not result.level_check.withheld

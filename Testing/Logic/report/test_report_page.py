@@ -135,3 +135,49 @@ def test_the_labellings_line_lists_each_labellings_best_registration_and_marks_t
     assert text.endswith("*: stopped early, too far behind to matter.")
     hypotheses[3].pop("stopped_at_evaluations")
     assert "*" not in _labellings_block(check)
+
+
+REFUSED = ("the X-ray matches the CT best mirrored left right (GC 0.78 against 0.40 as stored): the display is "
+           "mirrored or rotated; export the image as acquired and register again")
+
+
+def test_a_refused_image_names_no_level_on_any_front_door(tmp_path):
+    """A refused X-ray (mirrored display) withholds the names (``LevelCheck.withheld_for``): result.json keeps the
+    contest's record but names no click; overlay.png, the report page and the command line write no level name
+    (the 3D Slicer scene: ``test_slicer_files``)."""
+    import json
+
+    from PIL import Image
+
+    from carmreg.logic.report.result_files import save_result
+    from carmreg.logic.report.style import FITTED_COLOUR, level_banner, level_summary
+
+    shown = _result("confident")
+    refused = _result("confident")
+    refused.level_check = refused.level_check.withheld_for(REFUSED)
+    refused.ok, refused.warnings = False, [REFUSED]
+    check = refused.level_check
+    assert (check.status, check.assigned_labels, check.names(), check.winner_labels) == (
+        "ambiguous", [], [], ["T10", "T11", "T12"])  # never confident; the contest's winner kept as its record
+    assert LevelCheck.from_dict(check.to_dict()) == check
+    assert answer_banner(check, False, [REFUSED]) == ("IMAGE REFUSED - NO LEVEL NAMED",
+                                                      "level names WITHHELD: " + REFUSED, "#c92a2a")
+    assert level_banner(check)[0] == "Levels: IMAGE REFUSED - NO LEVEL NAMED"
+    assert level_summary(check) == "level identification: level names WITHHELD: " + REFUSED
+
+    def written(result, name):
+        clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv["fitted"]}
+        return save_result(result, tmp_path / name, result.xray_line_integral, clicked, ct=None)
+
+    paths, before = written(refused, "refused"), written(shown, "shown")
+    doc = json.loads(paths["result"].read_text())["level_check"]
+    assert doc["withheld"] == REFUSED and doc["assigned_labels"] == [] and doc["status"] == "ambiguous"
+    text = pypdf.PdfReader(str(paths["report"])).pages[0].extract_text()
+    assert "IMAGE REFUSED - NO LEVEL NAMED" in text and "No level is named" in text
+    assert "a record, not an answer" in " ".join(text.split())
+    assert not any(line.split()[:2] in (["T11", "yes"], ["L1", "no"]) for line in text.splitlines())
+    names = {}
+    for key, result_paths in (("refused", paths), ("shown", before)):
+        rgb = np.asarray(Image.open(result_paths["overlay"]).convert("RGB"))
+        names[key] = _near(rgb, FITTED_COLOUR).sum()  # the green discs, and the names beside them when shown
+    assert names["refused"] < 0.5 * names["shown"], names

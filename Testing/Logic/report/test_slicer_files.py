@@ -258,3 +258,21 @@ def test_scene_positions_in_ras_are_where_carmreg_says(case, loaded_scene):
     clicked_uv = np.array([lv["clicked_uv_px"] for lv in result.levels if lv["clicked_uv_px"] is not None])
     np.testing.assert_allclose(clicks_ras, pixel_to_detector_lps(result.geometry, result.pose, clicked_uv) @ RAS,
                                atol=1e-6)
+
+
+def test_a_refused_images_scene_names_its_points_on_the_detector_with_a_question_mark(case, tmp_path):
+    """Names withheld (the X-ray refused: ``LevelCheck.withheld_for``): Slicer shows the clicks and the projected
+    levels with a "?" after each name; the CT's own centroids keep theirs."""
+    import dataclasses
+
+    from carmreg.logic.registration.level_check import LevelCheck
+
+    check = LevelCheck("unnamed", "confident", assigned_labels=["T11", "T12"]).withheld_for("display mirrored")
+    refused = dataclasses.replace(case["result"], level_check=check, ok=False)
+    paths = write_slicer_scene(tmp_path, refused, case["ct"], case["landmarks"], case["xray"])
+    scene, _ = _new_scene()
+    scene.SetURL(str(paths["slicer_scene"]))
+    assert scene.Import() == 1
+    assert _points(scene.GetFirstNodeByName("X-ray clicks"))[0] == ["T11?", "T12?"]
+    assert _points(scene.GetFirstNodeByName("Projected levels"))[0] == ["T11?", "T12?", "L1?"]
+    assert _points(scene.GetFirstNodeByName("CT centroids"))[0] == ["T11", "T12", "L1"]
