@@ -19,6 +19,7 @@ from pathlib import Path
 from carmreg.logic.errors import CancelledError, CarmRegError, GeometryError, InputFileError, RegistrationError
 from carmreg.logic.io import session as session_io
 from carmreg.logic.registration.preflight import MIN_CLICKS, click_mode
+from carmreg.logic.report.style import names_shown
 from carmreg.logic.similarity.metrics import METRICS
 
 from .qt_common import process_events, report_errors
@@ -211,7 +212,7 @@ class WindowRegistration:
     def set_result(self, result) -> None:
         """Show a RegistrationResult: overlay, per-level PDE, level identification, stage figures, C-arm in 3D."""
         from carmreg.logic.report.page import drawn_mpde_mm
-        from carmreg.logic.report.style import answer_banner, names_shown
+        from carmreg.logic.report.style import answer_banner
 
         self.result, self.result_stale = result, False
         clicks = self.shown_clicks()
@@ -294,7 +295,7 @@ class WindowRegistration:
         reason = ""
         if self.result is not None and self.result_stale:
             reason = "The clicks changed since this result: register again"
-        elif self.result is not None and getattr(self.result.level_check, "withheld", ""):
+        elif self.result is not None and not names_shown(getattr(self.result, "level_check", None)):
             reason = "No level was named: the X-ray was refused (see the result)"
         elif self.result is None or not self.assigned_names:
             reason = "No level names were assigned: register first"

@@ -57,6 +57,7 @@ def build_result(state: RegistrationState) -> RegistrationResult:
                 "xray_frame": state.xray.meta.get("frame"),
                 "xray_frames_in_file": state.xray.meta.get("n_frames")})
 
+
 def level_check(state: RegistrationState):
     """The levels stage's answer as recorded (``LevelIdentification.summary``), its names withheld when the
     X-ray's display is refused (``refused_display``); None when the stage did not run."""

@@ -4,7 +4,7 @@ its clicks fit well enough to call the verdict clear."""
 import numpy as np
 import pytest
 
-from carmreg.logic.image.appearance import REFINED_AT_CLICKS, decide_polarity, verdict_at_clicks
+from carmreg.logic.image.appearance import FITTED_MIN_GC, REFINED_AT_CLICKS, decide_polarity, verdict_at_clicks
 from carmreg.logic.registration.click_polarity import CLEAR_WITH_WINNER_GC, _evidence, confirms
 from carmreg.logic.registration.image_refine import RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit
@@ -59,6 +59,21 @@ def test_keeping_the_clicks_with_a_negative_gc_is_no_evidence_for_a_polarity():
                              refined_by=REFINED_AT_CLICKS, fits=evidence.fits)
     assert chosen.polarity == "bone-dark" and not chosen.clear and "keeps the clicks fitted" in chosen.note
     assert verdict_at_clicks({"bone-dark": 0.0, "bone-bright": -0.2}, {"bone-dark": True})[0] == "bone-dark"
+
+
+def test_keeping_the_clicks_with_a_gc_about_zero_is_no_evidence_and_does_not_overrule_the_files_polarity():
+    """Report case 9 of the appearance benchmark, a linear flat-panel DICOM stating bone dark, names given: bone
+    dark reached GC 0.816 with the clicks 5.7 mm off, bone bright 0.002 on them (1.9 mm). Preferring the fitted
+    side at GC 0.002 called the image bone bright, in conflict with the file: right names flagged. Below
+    ``FITTED_MIN_GC`` keeping the clicks is no evidence: the image agrees with the file, which stands, clear."""
+    scores, fits = {"bone-dark": 0.816, "bone-bright": 0.002}, {"bone-dark": False, "bone-bright": True}
+    assert FITTED_MIN_GC == 0.10
+    assert verdict_at_clicks(scores, fits) == ("bone-dark", pytest.approx(0.814), False)
+    chosen = decide_polarity({"bone-dark": 0.65, "bone-bright": 0.32}, scores, "auto", True, "DICOM (0028,1041)",
+                             header_explicit=True, refined_by=REFINED_AT_CLICKS, fits=fits)
+    assert (chosen.polarity, chosen.clear) == ("bone-dark", True) and "the image agrees" in chosen.note
+    # at the floor, keeping the clicks counts again (the rule's own example: 0.21 on them against 0.34 off them)
+    assert verdict_at_clicks({"bone-dark": 0.34, "bone-bright": 0.10}, fits)[0] == "bone-bright"
 
 
 def test_the_levels_winner_confirms_a_polarity_only_by_the_images_own_clear_verdict_and_a_wide_lead():
