@@ -127,7 +127,7 @@ CLEAR_REFINED_GC = 0.15     # GC gap of the refined scores (no clicks) called cl
 CLEAR_CLICKS_GC = 0.10      # at the clicks' poses: the GC gap called clear (tune half of the appearance benchmark)
 MIN_CLICKS_GC = 0.30        # ... and the winner's GC must reach this (ditto)
 FITTED_MIN_GC = 0.10        # ... and a registration's GC before its keeping the clicks fitted counts (stop 21,
-#                             replayed on the tune half's 457 recorded verdicts: 0.05-0.15 set 3-5 unclear ones
+#                             replayed on the tune half's 460 recorded verdicts: 0.05-0.15 set 3-5 unclear ones
 #                             right and none wrong, 0.20 broke 3; 0 until then; no clear verdict changes below 0.30)
 REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
