@@ -135,6 +135,13 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     return _wrap(text, 110)
 
 
+def _failed_checks(warnings: list[str], reason: str) -> str:
+    """"CHECKS FAILED" with the failed checks the banner's reason does not already say (a contradiction's or a
+    refusal's message is both the reason and a warning: said twice, it ran out of the banner)."""
+    rest = [w for w in warnings if w not in reason]
+    return "CHECKS FAILED" + (": " + "; ".join(rest) if rest else "")
+
+
 def _short_path(path: str, width: int = 78) -> str:
     return path if len(path) <= width else "..." + path[-(width - 3):]
 
@@ -184,7 +191,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.add_patch(_box(colour))
     banner.text(0.015, 0.78, headline, fontsize=11.5, fontweight="bold", color="white", va="center",
                 transform=banner.transAxes)
-    text = reason if doc["ok"] else reason + ("\n" if reason else "") + "CHECKS FAILED: " + "; ".join(doc["warnings"])
+    text = reason if doc["ok"] else reason + ("\n" if reason else "") + _failed_checks(doc["warnings"], reason)
     banner.text(0.015, 0.56, _wrap(text, 128), fontsize=7.2, color="white", va="top", transform=banner.transAxes)
 
     ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))

@@ -175,6 +175,8 @@ def test_a_refused_image_names_no_level_on_any_front_door(tmp_path):
     text = pypdf.PdfReader(str(paths["report"])).pages[0].extract_text()
     assert "IMAGE REFUSED - NO LEVEL NAMED" in text and "No level is named" in text
     assert "a record, not an answer" in " ".join(text.split())
+    # the refusal said once in the banner (its reason; "CHECKS FAILED" adds nothing it says) and once beside the image
+    assert " ".join(text.split()).count("GC 0.78 against 0.40") == 2 and "CHECKS FAILED" in text
     assert not any(line.split()[:2] in (["T11", "yes"], ["L1", "no"]) for line in text.splitlines())
     names = {}
     for key, result_paths in (("refused", paths), ("shown", before)):
