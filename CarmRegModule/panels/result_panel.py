@@ -25,6 +25,10 @@ from carmreg.logic.report.composite import MODES
 from carmreg.logic.report.style import MODE_DESCRIPTION, status_ink
 
 MAX_HYPOTHESES = 6
+HYPOTHESES_TIP = ("The labellings tried, best first (bold: the image's choice). Score: image dissimilarity + "
+                  "landmark misfit, lower is better")
+RECORD_CAPTION = ("The labellings tried on the image as stored: a record of the contest, not an answer (the X-ray "
+                  "was refused, no level is named)")
 
 
 def _number(value, decimals: int) -> str:
@@ -203,8 +207,12 @@ class ResultPanel(QtWidgets.QWidget):
         self.hypotheses_table.setFixedHeight(
             self.hypotheses_table.verticalHeader().defaultSectionSize() * MAX_HYPOTHESES
             + header.sizeHint().height() + 6)
-        self.hypotheses_table.setToolTip("The labellings tried, best first (bold: the image's choice). Score: "
-                                         "image dissimilarity + landmark misfit, lower is better")
+        self.hypotheses_table.setToolTip(HYPOTHESES_TIP)
+        self.hypotheses_caption = QtWidgets.QLabel(RECORD_CAPTION)
+        self.hypotheses_caption.setObjectName("hypotheses_caption")
+        self.hypotheses_caption.setWordWrap(True)
+        self.hypotheses_caption.setVisible(False)
+        form.addRow(self.hypotheses_caption)
         form.addRow(self.hypotheses_table)
         self.accept_button = QtWidgets.QPushButton("Accept assigned names")
         self.accept_button.setToolTip("Name the X-ray clicks as assigned by the level identification (Ctrl+Z "
@@ -245,13 +253,21 @@ class ResultPanel(QtWidgets.QWidget):
             t = ConfidenceRule().margin
             margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
         self.level_margin_label.setText(margin)
-        runner_up = check.runner_up_labels
+        runner_up = [] if check.withheld else check.runner_up_labels
         prefers = status == "contradicted" and mode in ("named", "partly_named")
         self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)
                                            if runner_up else "-")
+        self._set_hypotheses(check, labels)
+
+    def _set_hypotheses(self, check: LevelCheck, labels: list[str]) -> None:
+        """The labellings tried, best first, the image's choice in bold; on a refused X-ray (``withheld``) a record
+        of the contest under a caption saying so, no row in bold (nothing there is an answer)."""
+        record = bool(check.withheld)
+        self.hypotheses_caption.setVisible(record)
+        self.hypotheses_table.setToolTip(RECORD_CAPTION if record else HYPOTHESES_TIP)
         hypotheses = ranked_hypotheses(check)[:MAX_HYPOTHESES]
         self.hypotheses_table.setRowCount(len(hypotheses))
-        winner = list(check.winner_labels or labels)
+        winner = None if record else list(check.winner_labels or labels)
         for row, h in enumerate(hypotheses):
             registered = h.get("refined", True)
             cells = [", ".join(h.get("labels") or []) or "-"] + [

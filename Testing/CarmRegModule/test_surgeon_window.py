@@ -125,6 +125,7 @@ def test_a_refused_image_shows_no_level_name_and_offers_none(xray_window):
     win = xray_window
     _three_named_clicks(win)
     result = _named_result(win, ["T10", "T11", "T12"], [1.0, 1.0, 1.0])
+    result.level_check.runner_up_labels = ["T11", "T12", "L1"]
     result.level_check = result.level_check.withheld_for("the display is mirrored or rotated")
     result.ok, result.warnings = False, ["the display is mirrored or rotated"]
     win.set_result(result)
@@ -134,6 +135,10 @@ def test_a_refused_image_shows_no_level_name_and_offers_none(xray_window):
     assert headline == "IMAGE REFUSED - NO LEVEL NAMED" and colour == "#c92a2a" and "mirrored" in reason
     rp = win.result_panel
     assert rp.level_assigned_label.text() == "none: the X-ray was refused"
+    assert rp.level_runner_up_label.text() == "-" and not rp.hypotheses_caption.isHidden()
+    assert "not an answer" in rp.hypotheses_caption.text() and rp.hypotheses_table.rowCount() >= 1
+    cells = [rp.hypotheses_table.item(r, c) for r in range(rp.hypotheses_table.rowCount()) for c in range(4)]
+    assert not any(cell.font().bold() for cell in cells)  # the record's winner is no answer: nothing in bold
     assert not rp.accept_button.isEnabled() and not win.act_accept_names.isEnabled()
     assert "refused" in rp.accept_button.toolTip() and not win.assigned_names
     assert sorted(spec.text for spec in win.xray_view.markers().values()) == ["T10", "T11", "T12"]  # the user's
