@@ -367,8 +367,8 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         note = f"{seen}, found from the {by} (GC gap {gap:.3f} >= {threshold})"
     else:
         polarity = seen
-        note = (f"{seen}, but the image barely tells ({why}); the file says {header}: "
-                "set the polarity by hand if the overlay looks inverted")
+        note = (f"{seen}, but the image barely tells ({why}); the file does not state the polarity ({header} is "
+                "only the default for its type): set the polarity by hand if the overlay looks inverted")
     scores = {"database": {k: database[k] for k in POLARITIES},
               "refined": None if refined is None else {k: refined[k] for k in POLARITIES}, "storage": None}
     appearance = Appearance(polarity, "log-display" if polarity == "bone-bright" else "linear-intensity", by,

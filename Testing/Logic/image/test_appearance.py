@@ -87,7 +87,7 @@ def test_without_clicks_a_refined_lead_under_0_15_is_used_but_not_clear():
     close = decide_polarity(database, {"bone-dark": 0.375, "bone-bright": 0.516}, "auto", True, "PNG", None)
     assert (close.polarity, close.clear) == ("bone-bright", False)  # 0.141: clear at stop 15 (0.12)
     assert close.clarity_gc == pytest.approx(0.141) and close.threshold_gc == 0.15
-    assert "barely tells" in close.note
+    assert "barely tells" in close.note and "the file does not state the polarity" in close.note  # a PNG says none
     lead = decide_polarity(database, {"bone-dark": 0.375, "bone-bright": 0.530}, "auto", True, "PNG", None)
     assert (lead.polarity, lead.clear) == ("bone-bright", True)
 
