@@ -18,7 +18,7 @@ import time
 import numpy as np
 from qtpy import QtCore, QtWidgets
 
-from carmreg.logic.report.style import status_ink
+from carmreg.logic.report.style import names_shown, status_ink
 
 STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",
@@ -331,9 +331,11 @@ class RegistrationPanel(QtWidgets.QWidget):
 
 def level_check_html(check) -> str:
     """One line on the level names (``LevelCheck`` or None): status (coloured), assigned names, margin over the
-    runner-up."""
+    runner-up; on a refused X-ray (``style.names_shown``) that no level is named, and no labelling."""
     if not check:
         return ""
+    if not names_shown(check):
+        return f"<br>Level names: <b style='color:{status_ink('contradicted')}'>none named</b> (the X-ray was refused)."
     from .result_panel import format_margin
 
     colour = status_ink(check.status)

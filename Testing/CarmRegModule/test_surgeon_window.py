@@ -139,6 +139,8 @@ def test_a_refused_image_shows_no_level_name_and_offers_none(xray_window):
     assert "not an answer" in rp.hypotheses_caption.text() and rp.hypotheses_table.rowCount() >= 1
     cells = [rp.hypotheses_table.item(r, c) for r in range(rp.hypotheses_table.rowCount()) for c in range(4)]
     assert not any(cell.font().bold() for cell in cells)  # the record's winner is no answer: nothing in bold
+    summary = win.registration_panel.status_label.text()  # the Register step's summary line names nothing either
+    assert "none named" in summary and not any(name in summary for name in ("T10", "T11", "T12", "L1"))
     assert not rp.accept_button.isEnabled() and not win.act_accept_names.isEnabled()
     assert "refused" in rp.accept_button.toolTip() and not win.assigned_names
     assert sorted(spec.text for spec in win.xray_view.markers().values()) == ["T10", "T11", "T12"]  # the user's
