@@ -185,7 +185,7 @@ class ResultPanel(QtWidgets.QWidget):
         self.level_margin_label.setToolTip("Score of the assigned labelling minus the runner-up's: larger = surer")
         form.addRow("Mode", self.level_mode_label)
         form.addRow("Status", self.level_status_label)
-        form.addRow("", self.level_message_label)
+        form.addRow(self.level_message_label)
         form.addRow("Assigned", self.level_assigned_label)
         form.addRow("Margin", self.level_margin_label)
         form.addRow("Runner-up", self.level_runner_up_label)
