@@ -35,9 +35,12 @@ import numpy as np
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
-from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer, names_shown
+from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer, margin_detail, names_shown
 
 A4_INCHES = (8.27, 11.69)
+LINE_SPACING = 1.2  # matplotlib's line spacing, x the font size
+FIT_SIZES_PT = (7.2, 6.8, 6.4, 6.0)  # the sizes a text block may shrink to before it is cut
+CUT = " ... (in full in result.json)"
 NOT_FOR_DIAGNOSIS = "Research software - NOT FOR DIAGNOSIS. Check every level on the image yourself."
 
 
@@ -115,7 +118,7 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     its score, best first."""
     seen_as = f"X-ray: {appearance.summary()}. " if appearance is not None else ""
     if not check:
-        return _wrap(seen_as + "The level names were not checked against the image (level check off).", 110)
+        return seen_as + "The level names were not checked against the image (level check off)."
     mode = MODE_DESCRIPTION.get(check.mode, str(check.mode))
     tried = sorted((h for h in check.hypotheses if h.get("refined", True) and h.get("labels")),
                    key=lambda h: float(h.get("score", np.inf)))
@@ -132,7 +135,7 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
             text += " *: stopped early, too far behind to matter."
         if check.withheld:
             text += " They were judged on the image as stored, which was refused: a record, not an answer."
-    return _wrap(text, 110)
+    return text
 
 
 def _failed_checks(warnings: list[str], reason: str) -> str:
@@ -155,6 +158,36 @@ def _versions_line(doc: dict) -> str:
 
 def _wrap(text: str, width: int) -> str:
     return "\n".join(textwrap.fill(par, width) for par in text.split("\n"))
+
+
+def _line_count(text: str) -> int:
+    return text.count("\n") + 1 if text else 0
+
+
+def fit_text(blocks: list[str], chars_at_7pt2: int, height_in: float, gap_in: float = 0.0) -> tuple[float, list[str]]:
+    """(font size pt, the blocks wrapped) so that the blocks, one under the other with ``gap_in`` between, fill at
+    most ``height_in`` inches: the largest size of ``FIT_SIZES_PT`` at which they fit, each wrapped to the width
+    ``chars_at_7pt2`` characters of 7.2 pt fill (proportionally more when smaller; a block is ``lines x size x
+    LINE_SPACING`` pt tall). At the smallest size the text is cut where the room ends, the last line kept ending
+    with ``CUT``; a block with no room left is "". Long warnings and reasons thus stay inside the page's boxes."""
+    pars = [[p for p in block.split("\n")] if block else [] for block in blocks]
+    for size in FIT_SIZES_PT:
+        width = int(chars_at_7pt2 * 7.2 / size)
+        wrapped = ["\n".join(textwrap.fill(p, width) for p in block) for block in pars]
+        used = sum(_line_count(w) for w in wrapped) * size * LINE_SPACING / 72
+        if used + gap_in * max(0, sum(bool(w) for w in wrapped) - 1) <= height_in:
+            return size, wrapped
+    room = int((height_in - gap_in * max(0, len(blocks) - 1)) * 72 / (size * LINE_SPACING))
+    cut = []
+    for block in pars:
+        lines = []
+        for par in block:
+            if room - len(lines) <= 0:
+                break
+            lines += textwrap.wrap(par, width, max_lines=room - len(lines), placeholder=CUT) or [""]
+        room -= len(lines)
+        cut.append("\n".join(lines))
+    return size, cut
 
 
 # ----------------------------------------------------------------------------------------------- page
@@ -183,7 +216,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     fig.text(0.95, 0.975, made, fontsize=8, ha="right", va="top", color="#495057")
     fig.text(0.05, 0.948, NOT_FOR_DIAGNOSIS, fontsize=9, fontweight="bold", color="#c92a2a", va="top")
 
-    headline, reason, colour = level_answer(check, bool(doc["ok"]))
+    headline, reason, colour = level_answer(check, bool(doc["ok"]), detail=False)
     banner = fig.add_axes((0.05, 0.865, 0.90, 0.07))
     banner.set_axis_off()
     banner.set_xlim(0, 1)
@@ -191,8 +224,10 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.add_patch(_box(colour))
     banner.text(0.015, 0.78, headline, fontsize=11.5, fontweight="bold", color="white", va="center",
                 transform=banner.transAxes)
-    text = reason if doc["ok"] else reason + ("\n" if reason else "") + _failed_checks(doc["warnings"], reason)
-    banner.text(0.015, 0.56, _wrap(text, 128), fontsize=7.2, color="white", va="top", transform=banner.transAxes)
+    paragraphs = [reason] + ([] if doc["ok"] else [_failed_checks(doc["warnings"], reason)])
+    paragraphs += [f"({margin_detail(check)})"] if margin_detail(check) else []  # the least needed: cut first
+    size, (text,) = fit_text(["\n".join(p for p in paragraphs if p)], 128, (0.56 - 0.05) * 0.07 * A4_INCHES[1])
+    banner.text(0.015, 0.56, text, fontsize=size, color="white", va="top", transform=banner.transAxes)
 
     ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))
     draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted", names=names_shown(check))
@@ -209,14 +244,27 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
              va="top")
     fig.text(0.05, 0.267, _inputs_block(doc), **mono)
     fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
-    fig.text(0.05, 0.137, _labellings_block(check, getattr(result, "appearance", None)), fontsize=7.2, va="top")
-    other = [w for w in doc["warnings"] if doc["ok"]]
-    if other:
-        fig.text(0.05, 0.095, _wrap("Warnings: " + "; ".join(other), 120), fontsize=7, color="#e8590c", va="top")
+    _bottom_blocks(fig, _labellings_block(check, getattr(result, "appearance", None)),
+                   "Warnings: " + "; ".join(doc["warnings"]) if doc["ok"] and doc["warnings"] else "")
     fig.text(0.05, 0.045, _versions_line(doc), fontsize=6.8, va="top", color="#495057")
     fig.text(0.05, 0.028, "Frames: CT LPS mm; detector (u, v) = (column, row) px, 0-based pixel centres; PDE and "
              "mPDE in mm on the detector. Full numbers: result.json.", fontsize=6.5, va="top", color="#495057")
     return fig
+
+
+BOTTOM_TOP, BOTTOM_END = 0.137, 0.052  # figure fractions: under "How the levels were named", above the versions
+
+
+def _bottom_blocks(fig, labellings: str, warnings: str, gap_in: float = 0.05) -> None:
+    """The labellings tried and the warnings, one under the other, fitted into the space above the versions line
+    (``fit_text``: a case with long warnings gets smaller type, then cut, never text over text)."""
+    height_in = (BOTTOM_TOP - BOTTOM_END) * A4_INCHES[1]
+    size, (labellings, warnings) = fit_text([labellings, warnings], 125, height_in, gap_in)
+    y = BOTTOM_TOP
+    for text, colour in ((labellings, "black"), (warnings, "#e8590c")):
+        if text:
+            fig.text(0.05, y, text, fontsize=size, color=colour, va="top")
+            y -= (_line_count(text) * size * LINE_SPACING / 72 + gap_in) / A4_INCHES[1]
 
 
 def _box(colour: str):

@@ -110,14 +110,21 @@ def level_answer(check: LevelCheck | None, ok: bool = True, detail: bool = True)
     if names:
         headline += f": {names}"
     reason = check.message if check else "the level check was not run (fully named clicks, level check off)"
-    margin = check.margin if check else None
-    if detail and margin is not None and math.isfinite(margin):
-        from carmreg.logic.registration.level_confidence import ConfidenceRule
-
-        reason += f" (margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower " \
-                  f"is better; confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule)"
+    if detail and margin_detail(check):
+        reason += f" ({margin_detail(check)})"
     colour = status_fill(status if ok or status == "contradicted" else "contradicted")
     return headline, reason.strip(), colour
+
+
+def margin_detail(check: LevelCheck | None) -> str:
+    """The level answer's margin and how to read it ("" without a finite margin, or when no name is shown)."""
+    margin = check.margin if check else None
+    if margin is None or not math.isfinite(margin) or not names_shown(check):
+        return ""
+    from carmreg.logic.registration.level_confidence import ConfidenceRule
+
+    return (f"margin {float(margin):+.3f}; the score is 1 - gradient correlation + landmark terms, lower is better; "
+            f"confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule")
 
 
 def answer_banner(level_check: LevelCheck | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:

@@ -183,3 +183,32 @@ def test_a_refused_image_names_no_level_on_any_front_door(tmp_path):
         rgb = np.asarray(Image.open(result_paths["overlay"]).convert("RGB"))
         names[key] = _near(rgb, FITTED_COLOUR).sum()  # the green discs, and the names beside them when shown
     assert names["refused"] < 0.5 * names["shown"], names
+
+
+@pytest.mark.parametrize("words", [60, 400])
+def test_long_reasons_and_warnings_stay_in_their_boxes_smaller_then_cut(words):
+    """An unclear image's page carries long texts (the level message, the polarity note, every warning): each text
+    block stays inside its place - the banner's reason inside the banner, the labellings and the warnings above the
+    versions line and not over each other - in smaller type when needed, cut with a pointer to result.json when even
+    that is too long (measured on the drawn page, not estimated)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from carmreg.logic.report.page import CUT, FIT_SIZES_PT, report_figure
+
+    result = _result("confident")
+    long = " ".join(f"word{i % 10}" for i in range(words))
+    result.level_check.status, result.level_check.message = "ambiguous", "level names AMBIGUOUS: " + long
+    result.warnings = [f"X-ray polarity: {long}", "X-ray orientation: check that the display is not mirrored"]
+    fig = report_figure(result, result.xray_line_integral, {}, bone_dark=False)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    texts = {t.get_text().split()[0]: t for t in fig.texts + fig.axes[0].texts if t.get_text()}
+    banner_box = fig.axes[0].get_window_extent(renderer)
+    reason = next(t for t in fig.axes[0].texts if t.get_text().startswith("level names AMBIGUOUS"))
+    assert banner_box.contains(*reason.get_window_extent(renderer).p0)  # the reason's lower left is in the banner
+    blocks = [texts["Mode:"], texts["Warnings:"], texts["Versions:"]]
+    boxes = [t.get_window_extent(renderer) for t in blocks]
+    assert boxes[0].y0 > boxes[1].y1 and boxes[1].y0 > boxes[2].y1  # one under the other, none over another
+    sizes = {t.get_fontsize() for t in (reason, blocks[0], blocks[1])}
+    assert sizes <= set(FIT_SIZES_PT) and min(sizes) < FIT_SIZES_PT[0]  # smaller type than a short page's
+    cut = any(t.get_text().endswith(CUT.strip()) for t in (reason, blocks[1]))
+    assert cut == (words == 400)  # cut only when even the smallest type cannot hold it
