@@ -19,6 +19,9 @@ What the page shows, top to bottom:
   default);
 - the **versions** (CarmReg, Python, numpy, scipy, cma, numba) and the CMA-ES seed.
 
+Every text block has its place on the page: a long one (an unclear image's reason and warnings) is set in smaller
+type, down to 6 pt, and beyond that cut with a pointer to result.json (``fit_text``), never printed over another.
+
 ``write_report_pdf`` writes one A4 page atomically; ``write_report_png`` the same page as a PNG (README).
 Text in the PDF is real text (DejaVu embedded as Type 3 fonts with a ToUnicode map), so it can be searched and
 read back; Type 42 (whole TrueType subsets) read back the same but took 0.9 s more to write.
