@@ -173,7 +173,7 @@ def fit_text(blocks: list[str], chars_at_7pt2: int, height_in: float, gap_in: fl
     ``chars_at_7pt2`` characters of 7.2 pt fill (proportionally more when smaller; a block is ``lines x size x
     LINE_SPACING`` pt tall). At the smallest size the text is cut where the room ends, the last line kept ending
     with ``CUT``; a block with no room left is "". Long warnings and reasons thus stay inside the page's boxes."""
-    pars = [[p for p in block.split("\n")] if block else [] for block in blocks]
+    pars = [block.split("\n") if block else [] for block in blocks]
     for size in FIT_SIZES_PT:
         width = int(chars_at_7pt2 * 7.2 / size)
         wrapped = ["\n".join(textwrap.fill(p, width) for p in block) for block in pars]
