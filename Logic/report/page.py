@@ -228,7 +228,8 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.text(0.015, 0.78, headline, fontsize=11.5, fontweight="bold", color="white", va="center",
                 transform=banner.transAxes)
     paragraphs = [reason] + ([] if doc["ok"] else [_failed_checks(doc["warnings"], reason)])
-    paragraphs += [f"({margin_detail(check)})"] if margin_detail(check) else []  # the least needed: cut first
+    explained = margin_detail(check)
+    paragraphs += [f"({explained})"] if explained else []  # the least needed: cut first
     size, (text,) = fit_text(["\n".join(p for p in paragraphs if p)], 128, (0.56 - 0.05) * 0.07 * A4_INCHES[1])
     banner.text(0.015, 0.56, text, fontsize=size, color="white", va="top", transform=banner.transAxes)
 

@@ -110,8 +110,9 @@ def level_answer(check: LevelCheck | None, ok: bool = True, detail: bool = True)
     if names:
         headline += f": {names}"
     reason = check.message if check else "the level check was not run (fully named clicks, level check off)"
-    if detail and margin_detail(check):
-        reason += f" ({margin_detail(check)})"
+    explained = margin_detail(check) if detail else ""
+    if explained:
+        reason += f" ({explained})"
     colour = status_fill(status if ok or status == "contradicted" else "contradicted")
     return headline, reason.strip(), colour
 
