@@ -201,11 +201,11 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         form.addRow(label, selector)
         return selector
 
-    def _spin_box(self, form, label, suffix, maximum, tooltip):
+    def _spin_box(self, form, label, suffix, maximum, tooltip, minimum=0.0):
         import ctk
 
         box = ctk.ctkDoubleSpinBox()
-        box.decimals, box.minimum, box.maximum, box.suffix = 3, 0.0, maximum, suffix
+        box.decimals, box.minimum, box.maximum, box.suffix = 3, minimum, maximum, suffix
         box.toolTip = tooltip
         box.connect("valueChanged(double)", self.updateParameterNodeFromGUI)
         form.addRow(label, box)
@@ -235,6 +235,9 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.sdd = self._spin_box(form, "Source to detector:", " mm", 3000.0, "0 = from the DICOM file or 1000 mm")
         ui.spacing = self._spin_box(form, "Detector pixel spacing:", " mm", 10.0, "0 = from the file / volume")
         ui.sod = self._spin_box(form, "Source to isocentre:", " mm", 3000.0, "0 = from the DICOM file or 0.6 SDD")
+        ui.distortion = self._spin_box(form, "Pincushion at 100 mm:", " mm", 10.0, "An image intensifier's "
+                                       "distortion from the C-arm's calibration: how far an image point 100 mm from "
+                                       "the centre lies outward of a pinhole camera's. 0 = none (flat panel)", -10.0)
         form = sections["register"]
         ui.metric = qt.QComboBox()
         ui.metric.addItems(list(slicer_nodes().METRICS))
@@ -293,6 +296,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.sdd.value = float(node.GetParameter("SddMm") or 0)
             self.ui.spacing.value = float(node.GetParameter("PixelSpacingMm") or 0)
             self.ui.sod.value = float(node.GetParameter("SodMm") or 0)
+            self.ui.distortion.value = float(node.GetParameter("DistortionMm") or 0)
             self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
             ready = all(node.GetNodeReference(r) for r in ("CT", "CTPoints", "Xray"))
@@ -311,6 +315,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         node.SetParameter("SddMm", f"{self.ui.sdd.value:g}")
         node.SetParameter("PixelSpacingMm", f"{self.ui.spacing.value:g}")
         node.SetParameter("SodMm", f"{self.ui.sod.value:g}")
+        node.SetParameter("DistortionMm", f"{self.ui.distortion.value:g}")
         node.SetParameter("Metric", self.ui.metric.currentText)
         node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")
         node.EndModify(was_modified)

@@ -52,6 +52,9 @@ def _geometry_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--principal-point-px", type=float, nargs=2, metavar=("U", "V"),
                    help="principal point (column, row) px; default: image centre")
     g.add_argument("--sod-mm", type=float, help="source-to-isocentre (patient) distance, mm")
+    g.add_argument("--distortion-mm", type=float, metavar="MM",
+                   help="image-intensifier pincushion from the C-arm's calibration: how far (mm) an image point "
+                   "100 mm from the centre lies outward of a pinhole camera's; default 0 (none, a flat panel)")
     g.add_argument("--frame", type=int, help="frame of a multi-frame X-ray (0-based)")
 
 
@@ -178,7 +181,7 @@ def _load_xray(args):
 
     return load_xray(args.xray, sdd_mm=args.sdd_mm, pixel_spacing_mm=_spacing(args.pixel_spacing_mm),
                      principal_point_px=tuple(args.principal_point_px) if args.principal_point_px else None,
-                     sod_mm=args.sod_mm, frame=args.frame)
+                     sod_mm=args.sod_mm, frame=args.frame, distortion_mm=args.distortion_mm)
 
 
 def _xray_clicks(xray, xray_lm_path, clicks: str = "named"):
@@ -323,7 +326,8 @@ def cmd_drr(args) -> int:
             intrinsics = CarmIntrinsics(1020.0 if args.sdd_mm is None else args.sdd_mm, spacing,
                                         tuple(args.size_px),
                                         tuple(args.principal_point_px) if args.principal_point_px else None,
-                                        {"sdd_mm": "default" if args.sdd_mm is None else "manual"})
+                                        {"sdd_mm": "default" if args.sdd_mm is None else "manual"},
+                                        distortion_mm=args.distortion_mm or 0.0)
         except CarmRegError as exc:
             raise CarmRegError(f"carmreg drr: {exc}") from None
         sod = args.sod_mm

@@ -23,7 +23,8 @@ NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiduci
               "CarmTransform": "vtkMRMLLinearTransformNode", "DRR": "vtkMRMLScalarVolumeNode",
               "Overlay": "vtkMRMLVectorVolumeNode", "ProjectedLevels": "vtkMRMLMarkupsFiducialNode"}
 OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
-DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "Metric": "gc", "CheckLevels": "true"}
+DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "DistortionMm": "0", "Metric": "gc",
+                      "CheckLevels": "true"}
 """0 = take the value from the X-ray file (DICOM tags) or CarmReg's default."""
 
 
@@ -106,7 +107,7 @@ def _storage_file(node):
     return path if path and os.path.isfile(path) else None
 
 
-def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0):
+def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0, distortion_mm=0.0):
     """The X-ray as ``XrayImage``. Loaded from a file: ``load_xray`` on it (DICOM geometry tags), with the
     non-zero values given overriding; else its pixels with the given geometry (pixel spacing default: the
     volume's spacing)."""
@@ -118,7 +119,8 @@ def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0):
         raise ValueError(f"X-ray '{xray_node.GetName()}' must be a single 2D image (one slice, one component), "
                          f"got voxels {voxels.shape}")
     path = _storage_file(xray_node)
-    overrides = {"sdd_mm": sdd_mm or None, "pixel_spacing_mm": pixel_spacing_mm or None, "sod_mm": sod_mm or None}
+    overrides = {"sdd_mm": sdd_mm or None, "pixel_spacing_mm": pixel_spacing_mm or None, "sod_mm": sod_mm or None,
+                 "distortion_mm": distortion_mm or None}
     if path is not None:
         xray = load_xray(path, **overrides)
         if xray.pixels.shape == voxels.shape[1:]:
@@ -126,7 +128,7 @@ def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0):
     spacing = pixel_spacing_mm or float(xray_node.GetSpacing()[0])
     rows, cols = voxels.shape[1:]
     intrinsics = CarmIntrinsics(float(sdd_mm or 1000.0), (spacing, spacing), (cols, rows), None,
-                                {"sdd_mm": "manual" if sdd_mm else "default"})
+                                {"sdd_mm": "manual" if sdd_mm else "default"}, float(distortion_mm or 0.0))
     return XrayImage(np.asarray(voxels[0], np.float32), intrinsics, sod_mm or None, True,
                      f"Slicer volume '{xray_node.GetName()}'")
 
@@ -197,11 +199,12 @@ def set_default_parameters(parameter_node):
 
 
 def parameters_from_node(parameter_node):
-    """The registration settings of a parameter node: (sdd_mm, pixel_spacing_mm, sod_mm, metric, check_levels)."""
-    def number(name):
+    """The registration settings of a parameter node: (sdd_mm, pixel_spacing_mm, sod_mm, metric, check_levels,
+    distortion_mm); 0 = from the file or the default."""
+    def number(name, least=0.0):
         text = parameter_node.GetParameter(name) or "0"
         try:
-            return max(0.0, float(text))
+            return max(least, float(text))
         except ValueError:
             raise ValueError(f"CarmReg parameter {name} = {text!r} is not a number; set it in the module panel") \
                 from None
@@ -210,7 +213,7 @@ def parameters_from_node(parameter_node):
     if metric not in METRICS:
         raise ValueError(f"CarmReg parameter Metric = {metric!r}; choose one of {', '.join(METRICS)}")
     return (number("SddMm"), number("PixelSpacingMm"), number("SodMm"), metric,
-            (parameter_node.GetParameter("CheckLevels") or "true") == "true")
+            (parameter_node.GetParameter("CheckLevels") or "true") == "true", number("DistortionMm", -np.inf))
 
 
 def output_node(scene, parameter_node, role):
@@ -232,10 +235,10 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
     missing = [role for role in ("CT", "CTPoints", "Xray") if nodes[role] is None]
     if missing:
         raise ValueError(f"CarmReg: select the {', '.join(missing)} input(s) first")
-    sdd_mm, spacing_mm, sod_mm, metric, check_levels = parameters_from_node(parameter_node)
+    sdd_mm, spacing_mm, sod_mm, metric, check_levels, distortion_mm = parameters_from_node(parameter_node)
     ct = ct_from_node(nodes["CT"])
     ct_landmarks = ct_points_from_node(nodes["CTPoints"])
-    xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm)
+    xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm, distortion_mm)
     clicks = xray_points_from_node(nodes["XrayPoints"], nodes["Xray"]) if nodes["XrayPoints"] else None
     params = pipeline.RegistrationParameters(metric=metric, level_check=check_levels, cache_dir=cache_dir)
     result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)

@@ -101,7 +101,8 @@ class WindowData:
         new_intr = None
         if spacing is not None and sdd is not None:
             new_intr = CarmIntrinsics(float(sdd), tuple(spacing), self.xray.size_px, kw.get("principal_point_px"),
-                                      sources={k: "manual" for k in kw})
+                                      sources={k: "manual" for k in kw},
+                                      distortion_mm=kw.get("distortion_mm", 0.0))
         xray = dataclasses.replace(self.xray, intrinsics=new_intr, sod_mm=kw.get("sod_mm", self.xray.sod_mm))
         self.set_xray_image(xray, None, overrides)
 

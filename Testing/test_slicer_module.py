@@ -195,8 +195,9 @@ def test_mrml_nodes_become_carmregs_objects_as_its_own_readers_give_them(sample_
     xray, xray_file = nodes.xray_from_node(sample_nodes["xray"]), load_xray(sample_case_dir / "xray.dcm")
     assert xray.intrinsics.sdd_mm == xray_file.intrinsics.sdd_mm and xray.source == xray_file.source
     assert np.array_equal(module.slicer_nodes().voxels_kji(sample_nodes["xray"])[0], np.asarray(xray_file.pixels))
-    manual = module.slicer_nodes().xray_from_node(sample_nodes["xray"], sdd_mm=1100.0, sod_mm=700.0)
-    assert manual.intrinsics.sdd_mm == 1100.0 and manual.sod_mm == 700.0
+    manual = module.slicer_nodes().xray_from_node(sample_nodes["xray"], sdd_mm=1100.0, sod_mm=700.0,
+                                                  distortion_mm=2.5)
+    assert manual.intrinsics.sdd_mm == 1100.0 and manual.sod_mm == 700.0 and manual.intrinsics.distortion_mm == 2.5
 
 
 def test_parameter_node_defaults_and_bad_values(mrml):
@@ -205,10 +206,11 @@ def test_parameter_node_defaults_and_bad_values(mrml):
     node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", "CarmReg parameters")
     node.SetParameter("SddMm", "1020")
     module.slicer_nodes().set_default_parameters(node)
-    assert module.slicer_nodes().parameters_from_node(node) == (1020.0, 0.0, 0.0, "gc", True)
+    assert module.slicer_nodes().parameters_from_node(node) == (1020.0, 0.0, 0.0, "gc", True, 0.0)
     node.SetParameter("Metric", "psnr")
     node.SetParameter("CheckLevels", "false")
-    assert module.slicer_nodes().parameters_from_node(node)[3:] == ("psnr", False)
+    node.SetParameter("DistortionMm", "-1.5")  # barrel distortion is a negative pincushion, kept as given
+    assert module.slicer_nodes().parameters_from_node(node)[3:] == ("psnr", False, -1.5)
     node.SetParameter("Metric", "best")
     with pytest.raises(ValueError, match="Metric = 'best'; choose one of gc"):
         module.slicer_nodes().parameters_from_node(node)

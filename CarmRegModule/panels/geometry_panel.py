@@ -1,4 +1,5 @@
-"""C-arm geometry editor: SDD, detector pixel spacing, principal point, SOD, device presets, value sources.
+"""C-arm geometry editor: SDD, detector pixel spacing, principal point, SOD, an image intensifier's calibrated
+pincushion, device presets, value sources.
 
 Values shown are those the X-ray carries after the user's overrides; the right-hand column says where each
 came from (DICOM tag, preset, entered by hand, default). Editing a field or choosing a preset emits
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 from qtpy import QtCore, QtWidgets
 
-from carmreg.logic.geometry.camera import DEFAULT_SOD_FRACTION, nominal_sod_mm
+from carmreg.logic.geometry.camera import DEFAULT_SOD_FRACTION, MAX_DISTORTION_MM, nominal_sod_mm
 
 from ..presets import DevicePreset, list_presets
 
@@ -73,11 +74,16 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.v0 = _spin(-1.0, 20000.0, 1, " px")
         self.pp_centre = QtWidgets.QCheckBox("detector centre")
         self.sod = _spin(0.0, 3000.0, 1, " mm", "auto (0.6 x SDD)")
+        self.distortion = _spin(-MAX_DISTORTION_MM, MAX_DISTORTION_MM, 2, " mm")
+        self.distortion.setToolTip("An image intensifier's pincushion, from the C-arm's distortion calibration: how "
+                                   "far an image point 100 mm from the centre lies outward of where a distortion-"
+                                   "free camera would show it. 0 for a flat panel or an image already corrected.")
         self.sources: dict[str, QtWidgets.QLabel] = {}
         rows = [("sdd_mm", "Source-detector (SDD)", [self.sdd]),
                 ("pixel_spacing_mm", "Pixel spacing col, row", [self.du, self.dv]),
                 ("principal_point_px", "Principal point u0, v0", [self.u0, self.v0]),
-                ("sod_mm", "Source-isocentre (SOD)", [self.sod])]
+                ("sod_mm", "Source-isocentre (SOD)", [self.sod]),
+                ("distortion_mm", "Pincushion at 100 mm (calibration)", [self.distortion])]
         for r, (name, text, boxes) in enumerate(rows, start=1):
             grid.addWidget(QtWidgets.QLabel(text), 2 * r - 1, 0, 1, 4)
             for c, box in enumerate(boxes):
@@ -91,16 +97,16 @@ class GeometryPanel(QtWidgets.QGroupBox):
         grid.addWidget(self.pp_centre, 6, 2, 1, 2)
         self.pp_centre.toggled.connect(self._centre_toggled)
         self.sources["principal_point_px"].hide()
-        grid.addWidget(self.sources["principal_point_px"], 10, 0, 1, 4)
+        grid.addWidget(self.sources["principal_point_px"], 12, 0, 1, 4)
         self.size_label = QtWidgets.QLabel()
         self.size_label.setObjectName("hint")
         self.magnification_label = QtWidgets.QLabel()
         self.magnification_label.setObjectName("hint")
-        grid.addWidget(self.size_label, 11, 0, 1, 4)
-        grid.addWidget(self.magnification_label, 12, 0, 1, 4)
+        grid.addWidget(self.size_label, 13, 0, 1, 4)
+        grid.addWidget(self.magnification_label, 14, 0, 1, 4)
         self.reset_button = QtWidgets.QPushButton("Reset to values from the file")
         self.reset_button.clicked.connect(self.reset_overrides)
-        grid.addWidget(self.reset_button, 13, 0, 1, 4)
+        grid.addWidget(self.reset_button, 15, 0, 1, 4)
         grid.setColumnStretch(2, 1)
 
     # ------------------------------------------------------------------------------------- state
@@ -140,6 +146,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.v0.setEnabled(not self.pp_centre.isChecked())
         sod = ov.get("sod_mm", getattr(xray, "sod_mm", None))
         self.sod.setValue(float(sod or 0.0))
+        self.distortion.setValue(float(ov.get("distortion_mm", intr.distortion_mm if intr else 0.0) or 0.0))
         index = self.preset_combo.findData(ov.get("preset")) if ov.get("preset") else 0
         self.preset_combo.setCurrentIndex(max(index, 0))
         for name, label in self.sources.items():
@@ -197,7 +204,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
             return
         size = self._xray.size_px if self._xray is not None else None
         values = preset.geometry_for(size)
-        ov = {k: v for k, v in self._overrides.items() if k == "principal_point_px"}
+        ov = {k: v for k, v in self._overrides.items() if k in ("principal_point_px", "distortion_mm")}
         ov.update(values)
         ov["pixel_spacing_mm"] = list(values["pixel_spacing_mm"])
         ov["preset"] = key
@@ -233,7 +240,8 @@ class GeometryPanel(QtWidgets.QGroupBox):
                  "pixel_spacing_mm": [self.du.value(), self.dv.value()] if self.du.value() and self.dv.value()
                  else None,
                  "principal_point_px": None if self.pp_centre.isChecked() else [self.u0.value(), self.v0.value()],
-                 "sod_mm": self.sod.value() or None}[name]
+                 "sod_mm": self.sod.value() or None,
+                 "distortion_mm": self.distortion.value() or None}[name]
         current = self._overrides.get(name)
         if value == current or (value is not None and current is not None and
                                 _close(value, current)):
@@ -250,7 +258,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
         if intr is None:
             return None
         return {"sdd_mm": intr.sdd_mm, "pixel_spacing_mm": list(intr.pixel_spacing_mm),
-                "principal_point_px": list(intr.principal_point_px)}[name]
+                "principal_point_px": list(intr.principal_point_px), "distortion_mm": intr.distortion_mm}[name]
 
     def _centre_toggled(self, checked: bool) -> None:
         self.u0.setEnabled(not checked)

@@ -140,43 +140,56 @@ def _trace(flat, n0, n1, n2, s0, s1, s2, d0, d1, d2):
 
 
 @njit(fastmath=True, inline="always")
-def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out, b, v):
+def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, k_per_mm2, centre_px,
+                spans, out, b, v):
     """Row v of image b, columns spans[v, 0] <= u < spans[v, 1] (see _render_batch)."""
     n0, n1, n2 = shape
     s0, s1, s2 = src_ijk[b, 0], src_ijk[b, 1], src_ijk[b, 2]
     cv = cam_v_mm[v]
+    k = k_per_mm2
     for u in range(spans[v, 0], spans[v, 1]):
         p0 = det0_ijk[b, 0] + u * du_ijk[b, 0] + v * dv_ijk[b, 0]
         p1 = det0_ijk[b, 1] + u * du_ijk[b, 1] + v * dv_ijk[b, 1]
         p2 = det0_ijk[b, 2] + u * du_ijk[b, 2] + v * dv_ijk[b, 2]
         cu = cam_u_mm[u]
-        length = np.sqrt(cu * cu + cv * cv + sdd_mm * sdd_mm)
+        if k != 0.0:  # radial distortion: the pixel's ray goes to the ideal point d' (1 - k |d'|^2)
+            shrink = k * (cu * cu + cv * cv)
+            ru, rv = (u - centre_px[0]) * shrink, (v - centre_px[1]) * shrink
+            p0 -= ru * du_ijk[b, 0] + rv * dv_ijk[b, 0]
+            p1 -= ru * du_ijk[b, 1] + rv * dv_ijk[b, 1]
+            p2 -= ru * du_ijk[b, 2] + rv * dv_ijk[b, 2]
+            length = np.sqrt((cu * cu + cv * cv) * (1.0 - shrink) ** 2 + sdd_mm * sdd_mm)
+        else:
+            length = np.sqrt(cu * cu + cv * cv + sdd_mm * sdd_mm)
         out[b, v, u] = length * _trace(flat, n0, n1, n2, s0, s1, s2, p0 - s0, p1 - s1, p2 - s2)
 
 
 @njit(parallel=True, fastmath=True)
-def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
+def _render_batch(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, k_per_mm2, centre_px, spans,
+                  out):
     """out[b, v, u] = line integral for image b; per-image vectors in the (permuted) ijk units of ``mu``.
 
     The ray of pixel (u, v) runs from ``src_ijk[b]`` to ``det0_ijk[b] + u du_ijk[b] + v dv_ijk[b]`` and its
-    length in mm is sqrt(cam_u_mm[u]^2 + cam_v_mm[v]^2 + sdd_mm^2). Only the columns of ``spans`` (rows, 2)
-    are traced; ``out`` keeps its values elsewhere. Parallel over image rows.
+    length in mm is sqrt(cam_u_mm[u]^2 + cam_v_mm[v]^2 + sdd_mm^2); with ``k_per_mm2`` != 0 it runs to the
+    ideal point of the pixel instead (``geometry.distortion``, about ``centre_px``, the principal point). Only
+    the columns of ``spans`` (rows, 2) are traced; ``out`` keeps its values elsewhere. Parallel over image rows.
     """
     nb, rows = out.shape[0], out.shape[1]
     flat = mu.ravel()
     for task in numba.prange(nb * rows):
-        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out,
-                    task // rows, task % rows)
+        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, k_per_mm2,
+                    centre_px, spans, out, task // rows, task % rows)
 
 
 @njit(fastmath=True)
-def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out):
+def _render_serial(mu, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, k_per_mm2, centre_px, spans,
+                   out):
     """_render_batch on the calling thread (small jobs: no wait for a busy second core)."""
     nb, rows = out.shape[0], out.shape[1]
     flat = mu.ravel()
     for task in range(nb * rows):
-        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, spans, out,
-                    task // rows, task % rows)
+        _render_row(flat, mu.shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_mm, sdd_mm, k_per_mm2,
+                    centre_px, spans, out, task // rows, task % rows)
 
 
 @njit(parallel=True)
@@ -284,6 +297,8 @@ def render_line_integrals(level: MuLevel, geometry: CarmGeometry, poses,
 
     ``intrinsics`` overrides the geometry's detector (e.g. a binned one for the coarse stage). ``spans``
     (``row_spans`` of a region, e.g. the exposed field) limits the traced pixels to it; the others are 0.
+    A detector with radial distortion (``CarmIntrinsics.distortion_mm``) is rendered through it: each pixel's
+    ray goes to its ideal point (``geometry.distortion``); without, the rays are traced exactly as always.
     """
     intr = intrinsics or geometry.intrinsics
     single = isinstance(poses, CarmPose) or np.asarray(poses).ndim == 1
@@ -299,10 +314,11 @@ def render_line_integrals(level: MuLevel, geometry: CarmGeometry, poses,
     else:
         spans = np.ascontiguousarray(np.clip(spans, 0, cols), dtype=np.int64)
         out = np.zeros((len(p), rows, cols), dtype=np.float32)
+    centre = np.asarray(intr.principal_point_px, np.float64)
     kernel = _render_serial if out.size * sum(mu.shape) < SERIAL_WORK_LIMIT else _render_batch
     kernel(mu, np.ascontiguousarray(src[:, order]), np.ascontiguousarray(det0[:, order]),
            np.ascontiguousarray(su[:, order]), np.ascontiguousarray(sv[:, order]),
-           cam_u, cam_v, float(intr.sdd_mm), spans, out)
+           cam_u, cam_v, float(intr.sdd_mm), float(intr.distortion.k_per_mm2), centre, spans, out)
     return out[0] if single else out
 
 

@@ -44,7 +44,7 @@ import weakref
 
 import numpy as np
 
-from carmreg.logic.errors import RegistrationError
+from carmreg.logic.errors import GeometryError, RegistrationError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose
 from carmreg.logic.geometry.volume import MuLevel
 
@@ -288,8 +288,12 @@ def render_line_integrals_vtk(level: MuLevel, geometry: CarmGeometry, pose_or_po
     """Line integrals L (float32) by VTK GPU ray casting (see module docstring).
 
     One pose (CarmPose or (6,)) -> (rows, cols); poses (b, 6) -> (b, rows, cols), rendered one after another.
-    The VTK pipeline of the most recent (level, settings, thread) is kept for the next call.
+    The VTK pipeline of the most recent (level, settings, thread) is kept for the next call. A pinhole camera
+    only: a detector with radial distortion (``CarmIntrinsics.distortion_mm``) is refused (``drr.cpu`` renders it).
     """
+    if (intrinsics or geometry.intrinsics).distortion_mm:
+        raise GeometryError("the VTK ray caster renders a pinhole camera; a detector with distortion is rendered "
+                            "by the CPU engine (--engine cpu)")
     key = (id(level.mu_per_mm), sample_distance_mm, interpolation, threading.get_ident())
     with _cache_lock:
         hit = _cache.get("renderer")

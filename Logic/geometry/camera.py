@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from carmreg.logic.errors import GeometryError
+from carmreg.logic.geometry.distortion import RadialDistortion
 
 # Rotation of the nominal AP camera: rows are camera x, y, z axes expressed in LPS.
 NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patient Left
@@ -52,6 +53,10 @@ POSE_NAMES = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 MAX_PIXEL_ASPECT = 3.0
 """Largest ratio of column to row spacing accepted (detector pixels are square or nearly)."""
+MAX_DISTORTION_MM = 10.0
+"""Largest ``distortion_mm`` accepted (shift at 100 mm from the centre; intensifiers: a few mm)."""
+MAX_DISTORTION_FRACTION = 0.2
+"""... and k r^2 at the detector's farthest corner at most this (the model's small-distortion range)."""
 MAX_DETECTOR_MM = 600.0
 """Largest detector side accepted: flat panels reach 43 cm, image intensifiers 40 cm (Ø), so 60 cm leaves
 margin while refusing a pixel-spacing typo (2.5 mm for 0.25) before it sizes a 2.5 m detector and its DRRs."""
@@ -66,6 +71,9 @@ class CarmIntrinsics:
     size_px: (columns, rows).
     principal_point_px: (u0, v0); defaults to the detector centre ((columns-1)/2, (rows-1)/2).
     sources: where each value came from (e.g. {"sdd_mm": "DICOM (0018,1110)"}).
+    distortion_mm: an image intensifier's radial (pincushion) distortion about the principal point, from the
+        C-arm's calibration: how far (mm) an image point 100 mm from the centre lies outward of the pinhole's
+        (``geometry.distortion``); 0 = none (a flat panel). DRRs are rendered through it (``drr.cpu``).
     """
 
     sdd_mm: float
@@ -73,6 +81,7 @@ class CarmIntrinsics:
     size_px: tuple[int, int]
     principal_point_px: tuple[float, float] | None = None
     sources: dict = field(default_factory=dict, compare=False)
+    distortion_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if self.principal_point_px is None:
@@ -106,6 +115,23 @@ class CarmIntrinsics:
         if not (np.isfinite(u0) and np.isfinite(v0) and -0.5 <= u0 <= cols - 0.5 and -0.5 <= v0 <= rows - 0.5):
             raise GeometryError(f"principal point ({u0}, {v0}) px lies off the {cols}x{rows} detector: "
                                 "give --principal-point-px inside the image or omit it for the centre")
+        self._validate_distortion()
+
+    def _validate_distortion(self) -> None:
+        """An intensifier's pincushion moves its rim by a few per cent; the model (``geometry.distortion``) holds
+        while k r^2 stays small over the detector (r to its farthest corner)."""
+        shift = self.distortion_mm
+        reach_mm = float(np.hypot(*(np.asarray(self.size_px) * np.asarray(self.pixel_spacing_mm)))) / 2.0
+        if not (np.isfinite(shift) and abs(shift) <= MAX_DISTORTION_MM
+                and abs(self.distortion.k_per_mm2) * reach_mm**2 <= MAX_DISTORTION_FRACTION):
+            raise GeometryError(f"distortion {shift:g} mm at 100 mm from the centre is not plausible: give "
+                                "--distortion-mm from the C-arm's calibration (an image intensifier's is a few mm; "
+                                f"at most {MAX_DISTORTION_MM:g}, less on a detector this large), or 0")
+
+    @property
+    def distortion(self) -> RadialDistortion:
+        """The radial distortion about the principal point (``distortion_mm``; k = 0 when there is none)."""
+        return RadialDistortion.from_shift(self.distortion_mm, self.principal_point_px, self.pixel_spacing_mm)
 
     @property
     def K(self) -> np.ndarray:

@@ -5,7 +5,8 @@ A session records the inputs and the user's work, never derived data:
 - ``ct_path``, ``xray_path``: the data files (stored relative to the session file when they sit below its
   folder, absolute otherwise; both forms are kept and the first that exists wins on reading);
 - ``geometry_overrides``: C-arm values the user set by hand or from a device preset, by field name
-  (``sdd_mm``, ``pixel_spacing_mm`` (column, row), ``principal_point_px`` (u, v), ``sod_mm``) plus the
+  (``sdd_mm``, ``pixel_spacing_mm`` (column, row), ``principal_point_px`` (u, v), ``sod_mm``, ``distortion_mm``
+  (an intensifier's pincushion, ``CarmIntrinsics.distortion_mm``)) plus the
   ``preset`` key (a file stem in ``Resources/Presets``) and ``preset_fields`` (which fields the preset set);
   fields absent here come from the X-ray file or the defaults;
 - ``ct_points``: CT centroids, ``[{"label": "T12", "position_lps_mm": [x, y, z]}]`` (LPS mm);
@@ -49,7 +50,7 @@ from carmreg.logic.io.limits import regular_file
 FORMAT_NAME = "carmreg-session"
 FORMAT_VERSION = 1
 SESSION_SUFFIX = ".carmreg.json"
-GEOMETRY_FIELDS = ("sdd_mm", "pixel_spacing_mm", "principal_point_px", "sod_mm")
+GEOMETRY_FIELDS = ("sdd_mm", "pixel_spacing_mm", "principal_point_px", "sod_mm", "distortion_mm")
 
 
 @dataclass
@@ -164,15 +165,17 @@ def _check_overrides(overrides: dict, where: str) -> dict:
     if unknown:
         raise InputFileError(f"{where}: unknown geometry field(s) {sorted(unknown)}; expected "
                              f"{', '.join(GEOMETRY_FIELDS)}")
-    for key, count in (("sdd_mm", 1), ("sod_mm", 1), ("pixel_spacing_mm", 2), ("principal_point_px", 2)):
+    for key, count in (("sdd_mm", 1), ("sod_mm", 1), ("pixel_spacing_mm", 2), ("principal_point_px", 2),
+                       ("distortion_mm", 1)):
         value = overrides.get(key)
         if value is None:
             continue
-        ok = _is_number(value) and value > 0 if count == 1 else (
+        ok = _is_number(value) and (value > 0 or key == "distortion_mm") if count == 1 else (
             (isinstance(value, list) and len(value) == 2 and all(_is_number(x) for x in value))
             or (key == "pixel_spacing_mm" and _is_number(value)))
         if not ok:
-            want = "a positive number of mm" if count == 1 else "two numbers"
+            want = ("a number of mm" if key == "distortion_mm" else "a positive number of mm") if count == 1 \
+                else "two numbers"
             raise InputFileError(f"{where}: geometry override {key} = {quote(value, 40)} is not {want}; fix or "
                                  "remove it")
     if "preset" in overrides and not isinstance(overrides["preset"], str | type(None)):

@@ -64,13 +64,16 @@ IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
 def load_xray(path: str | Path, *, sdd_mm: float | None = None,
               pixel_spacing_mm: float | tuple[float, float] | None = None,
               principal_point_px: tuple[float, float] | None = None, sod_mm: float | None = None,
-              frame: int | None = None, bone_dark: bool | None = None) -> XrayImage:
+              frame: int | None = None, bone_dark: bool | None = None,
+              distortion_mm: float | None = None) -> XrayImage:
     """Read an X-ray (DICOM, PNG, TIFF or JPEG) and its geometry; manual values override the file's.
 
     pixel_spacing_mm: one number (square pixels) or (column, row) spacing at the detector, mm.
     principal_point_px: (u0, v0) = (column, row); default the detector centre.
     frame: 0-based frame of a multi-frame file (required when it holds more than one).
     bone_dark: override the display polarity (see module docstring).
+    distortion_mm: an image intensifier's pincushion from the C-arm's calibration, the outward shift (mm) of an
+        image point 100 mm from the centre (``CarmIntrinsics.distortion_mm``); default 0 (none).
     Raises InputFileError for unreadable files, GeometryError for impossible geometry values.
     """
     path = Path(path)
@@ -90,7 +93,7 @@ def load_xray(path: str | Path, *, sdd_mm: float | None = None,
     if notes:
         image.meta["library_warnings"] = notes
     manual = {"sdd_mm": sdd_mm, "pixel_spacing_mm": _spacing_pair(pixel_spacing_mm),
-              "principal_point_px": principal_point_px, "sod_mm": sod_mm}
+              "principal_point_px": principal_point_px, "sod_mm": sod_mm, "distortion_mm": distortion_mm}
     for key, value in manual.items():
         if value is not None:
             image.geometry[key] = value

@@ -99,11 +99,14 @@ class XrayParts:
         if g.get("sdd_mm") is not None and g.get("pixel_spacing_mm") is not None:
             if g.get("principal_point_px") is None:
                 self.sources["principal_point_px"] = "default (detector centre)"
+            if g.get("distortion_mm") is None:
+                self.sources["distortion_mm"] = "default (none)"
             try:
                 spacing = tuple(float(x) for x in g["pixel_spacing_mm"])
                 intrinsics = CarmIntrinsics(float(g["sdd_mm"]), spacing, (cols, rows),
                                             _optional_pair(g.get("principal_point_px")),
-                                            sources=dict(self.sources))
+                                            sources=dict(self.sources),
+                                            distortion_mm=float(g.get("distortion_mm") or 0.0))
             except GeometryError as exc:
                 raise GeometryError(f"{path}: {exc}{self._origin_of(str(exc))}") from None
         sod = g.get("sod_mm")
@@ -115,7 +118,7 @@ class XrayParts:
     def _origin_of(self, message: str) -> str:
         """' (value from ...)' for the geometry value a CarmIntrinsics message is about, when not manual."""
         for prefix, key in (("source-to-detector", "sdd_mm"), ("pixel spacing", "pixel_spacing_mm"),
-                            ("principal point", "principal_point_px")):
+                            ("principal point", "principal_point_px"), ("distortion", "distortion_mm")):
             source = self.sources.get(key)
             if message.startswith(prefix) and source and source != "manual":
                 return f" (the value was read from {source}; the manual value overrides it)"

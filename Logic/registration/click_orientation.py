@@ -71,7 +71,7 @@ def rival_orientations(database_scores: dict) -> list[str]:
 
 def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
     """The C-arm geometry of the image turned by ``appearance.ORIENTATIONS[name]``: its size, pixel spacing and
-    principal point turned with it (the source and the detector plane unchanged)."""
+    principal point turned with it, its radial distortion the same (the source and the detector plane unchanged)."""
     intr = geometry.intrinsics
     cols, rows = intr.size_px
     (u0, v0), = orient_uv(np.array([intr.principal_point_px], float), name, intr.size_px)
@@ -79,7 +79,7 @@ def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
     size = (rows, cols) if quarter else (cols, rows)
     spacing = tuple(reversed(intr.pixel_spacing_mm)) if quarter else tuple(intr.pixel_spacing_mm)
     return geometry.with_intrinsics(CarmIntrinsics(intr.sdd_mm, spacing, size, (float(u0), float(v0)),
-                                                   dict(intr.sources)))
+                                                   dict(intr.sources), intr.distortion_mm))
 
 
 def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,

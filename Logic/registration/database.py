@@ -78,6 +78,8 @@ def database_key(digest: str, geometry: CarmGeometry, intrinsics: CarmIntrinsics
             "size": list(intrinsics.size_px), "pp": list(intrinsics.principal_point_px),
             "iso": [float(x) for x in geometry.isocenter_lps_mm], "sod": geometry.sod_mm,
             "ty": [float(x) for x in ty_mm], "tz": [float(x) for x in tz_mm], "tx": float(tx_mm)}
+    if intrinsics.distortion_mm:  # keyed only when present: the pinhole's keys (and caches) stay as they were
+        desc["distortion_mm"] = float(intrinsics.distortion_mm)
     h.update(json.dumps(desc, sort_keys=True).encode())
     return h.hexdigest()[:24]
 

@@ -1,6 +1,8 @@
 """The outcome of a registration (``build_result``): the final pose, every CT level projected on the X-ray (pixel
 (column, row), clicked levels with their projection distance in detector mm), the level check, and the checks
-that make ``ok`` False with the reason in words (``result_problems``).
+that make ``ok`` False with the reason in words (``result_problems``). On a detector with radial distortion
+(``geometry.distortion``) the levels and clicks are given where the X-ray shows them, the projection distances
+between the pinhole projection and the click's ideal point.
 
 An X-ray refused for its display (``refused_display``: it matches the CT best mirrored or turned) names no level:
 its level check is ``withheld_for`` that reason, since a pose and names found on the image as stored are a guess
@@ -24,17 +26,19 @@ def build_result(state: RegistrationState) -> RegistrationResult:
     the level check, and ``ok`` with the reasons when a check fails (``result_problems``)."""
     pose = CarmPose.from_array(state.pose)
     P = state.geometry.projection_matrix(pose)
+    intr = state.geometry.intrinsics
     fitted = set(state.pairs.labels) if state.pairs is not None else set()
     clicked = dict(zip(state.pairs.labels, state.pairs.uv_px, strict=True)) if state.pairs is not None else {}
-    spacing = state.geometry.intrinsics.pixel_spacing_mm
     named = name_margins(state.identification)
     levels = []
     for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
-        uv = project(P, point[None])[0]
-        pde = float(pde_mm(P, point[None], clicked[label][None], spacing)[0]) if label in clicked else None
+        uv = intr.distortion.distort(project(P, point[None])[0])  # where the X-ray shows it
+        pde = float(pde_mm(P, point[None], clicked[label][None], intr.pixel_spacing_mm)[0]) \
+            if label in clicked else None
         levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
-                       "pde_mm": pde, "in_image": in_detector(uv, state.geometry.intrinsics.size_px),
-                       "clicked_uv_px": [float(x) for x in clicked[label]] if label in clicked else None,
+                       "pde_mm": pde, "in_image": in_detector(uv, intr.size_px),
+                       "clicked_uv_px": [float(x) for x in intr.distortion.distort(clicked[label])]
+                       if label in clicked else None,
                        "name_margin": named.get(label)})
     problems = result_problems(state, pose)
     check = level_check(state)

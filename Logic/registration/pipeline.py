@@ -29,6 +29,7 @@ Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 
 import numpy as np
@@ -48,7 +49,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     orientation_scores,
 )
-from carmreg.logic.image.field import field_mask
+from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
@@ -98,6 +99,10 @@ from carmreg.logic.registration.state import (
 )
 from carmreg.logic.similarity.metrics import METRICS
 
+UNCORRECTED_INTENSIFIER = ("the X-ray's field is round, as an image intensifier's, and no distortion calibration was "
+                           "given (--distortion-mm): its pincushion is not corrected, so levels far from the clicks "
+                           "may lie 1-2 mm further off than on a flat panel")
+
 __all__ = ["MIN_CLICKS", "STAGES", "CarmRegLogic", "RegistrationParameters", "RegistrationResult", "StageResult"]
 
 
@@ -116,6 +121,15 @@ def final_drr_detector(intr: CarmIntrinsics, sod_mm: float, ct_spacing_mm: float
     if scale >= 1.0:
         return intr
     return intr.scaled_to((max(1, int(round(cols * scale))), max(1, int(round(rows * scale)))))
+
+
+def ideal_clicks(clicks: Landmarks2D, intr: CarmIntrinsics) -> Landmarks2D:
+    """The clicks where a pinhole camera would put them (``geometry.distortion``: the X-ray's radial distortion
+    undone), so that every stage compares them with ``P``; ``build_result`` reports them as clicked. ``clicks``
+    itself when the detector has no distortion."""
+    if not intr.distortion_mm:
+        return clicks
+    return dataclasses.replace(clicks, uv_px=intr.distortion.undistort(clicks.uv_px))
 
 
 class CarmRegLogic:
@@ -152,12 +166,15 @@ class CarmRegLogic:
         check_xray_content(xray.pixels, xray.source)
         check_ct_content(ct.hu, ct.source)
         preflight(ct_landmarks, xray_landmarks).raise_first()
-        pairs, notes = given_pairs(ct_landmarks, xray_landmarks)
         check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
+        xray_landmarks = ideal_clicks(xray_landmarks, intrinsics)
+        pairs, notes = given_pairs(ct_landmarks, xray_landmarks)
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
+        if not intrinsics.distortion_mm and round_field(mask):
+            notes = [*notes, UNCORRECTED_INTENSIFIER]
         appearance = initial_appearance(xray, params)
         line_integral = attenuation(xray.pixels, mask, appearance.bone_dark, appearance.storage)
         factor = coarse_factor(intrinsics.pixel_spacing_mm, params.coarse_spacing_mm)

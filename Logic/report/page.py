@@ -109,6 +109,8 @@ def _inputs_block(doc: dict) -> str:
               "pixel_spacing_mm": f"pixel spacing {spacing[0]:.4g} x {spacing[1]:.4g} mm (column x row)",
               "principal_point_px": "principal point ({:.1f}, {:.1f}) px".format(*geometry["principal_point_px"]),
               "sod_mm": f"SOD {geometry['sod_mm']:.1f} mm"}
+    if geometry.get("distortion_mm"):
+        values["distortion_mm"] = f"pincushion {geometry['distortion_mm']:.2f} mm at 100 mm from the centre"
     for key, text in values.items():
         lines.append(f"{text}  <- {sources.get(key, 'default' if key == 'sod_mm' else 'not recorded')}")
     lines.append(f"detector {geometry['size_px'][0]} x {geometry['size_px'][1]} px; isocentre at the CT centre "
@@ -246,7 +248,8 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     fig.text(0.05, 0.372, _pose_block(doc, drawn), **mono)
     fig.text(0.05, 0.285, "Inputs and geometry (value <- where it came from)", fontsize=9, fontweight="bold",
              va="top")
-    fig.text(0.05, 0.267, _inputs_block(doc), **mono)
+    size, (inputs,) = fit_text([_inputs_block(doc)], 118, (0.267 - INPUTS_END) * A4_INCHES[1])
+    fig.text(0.05, 0.267, inputs, **{**mono, "fontsize": size})
     fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
     _bottom_blocks(fig, _labellings_block(check, getattr(result, "appearance", None)),
                    "Warnings: " + "; ".join(doc["warnings"]) if doc["ok"] and doc["warnings"] else "")
@@ -256,6 +259,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     return fig
 
 
+INPUTS_END = 0.162  # figure fraction: the inputs block ends above "How the levels were named"
 BOTTOM_TOP, BOTTOM_END = 0.137, 0.052  # figure fractions: under "How the levels were named", above the versions
 
 

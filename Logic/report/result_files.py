@@ -8,7 +8,9 @@ Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.trans
   ``level_identify``);
   ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
   ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
-  ``geometry`` (intrinsics, isocentre, SOD, where each value came from); per-stage mPDE (detector mm), seconds
+  ``geometry`` (intrinsics, isocentre, SOD, the radial distortion ``distortion_mm`` given (0 = none; levels and
+  clicks are then where the X-ray shows them, ``projection_matrix`` the pinhole before it), where each value came
+  from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
   ``parameters``; ``reproducibility`` (versions, seed).
 - ``overlay.png``: the overlay as the window shows it by default and the report page prints it
@@ -38,6 +40,7 @@ from PIL import Image
 from carmreg.logic import __version__
 from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import pixel_to_detector_lps
+from carmreg.logic.geometry.distortion import DISTORTION_MODEL
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes, atomic_write_json, to_jsonable
 from carmreg.logic.io.transaction import FolderTransaction
 from carmreg.logic.report.overlay import result_overlay_image
@@ -69,6 +72,8 @@ def result_dict(result) -> dict:
         "geometry": {"sdd_mm": intr.sdd_mm, "pixel_spacing_mm": list(intr.pixel_spacing_mm),
                      "size_px": list(intr.size_px), "principal_point_px": list(intr.principal_point_px),
                      "isocenter_lps_mm": list(g.isocenter_lps_mm), "sod_mm": g.sod_mm,
+                     "distortion_mm": intr.distortion_mm, "distortion_k_per_mm2": intr.distortion.k_per_mm2,
+                     "distortion_model": DISTORTION_MODEL,
                      "sources": dict(result.inputs.get("geometry_sources", {}))},
         "stages": [{"name": s.name, "mpde_mm": s.mpde_mm, "seconds": round(s.seconds, 4),
                     "pose": s.pose.as_dict(), **to_jsonable(s.extra)} for s in result.stages],

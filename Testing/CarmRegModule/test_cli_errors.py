@@ -183,6 +183,8 @@ CASES = {
                                          "principal point (5000.0, 60.0) px lies off the 120x120 detector"),
     "--sod-mm beyond the detector": (lambda c: {"sod_mm": 1500}, "source-to-patient distance 1500 mm is not "
                                                                  "shorter than the source-to-detector"),
+    "--distortion-mm of a typo": (lambda c: {"distortion_mm": 40}, "distortion 40 mm at 100 mm from the centre is "
+                                                                  "not plausible: give --distortion-mm"),
 }
 
 

@@ -67,3 +67,18 @@ def test_sod_edit_changes_the_magnification_shown(window, synthetic_case):
     panel.sod.editingFinished.emit()
     assert window.xray.sod_mm == 500.0
     assert "2.00" in panel.magnification_label.text()
+
+
+def test_a_calibrated_pincushion_is_entered_kept_by_a_preset_and_reset(window, synthetic_case):
+    window.load_xray(synthetic_case.xray_path)
+    panel = window.geometry_panel
+    assert window.xray.intrinsics.distortion_mm == 0.0
+    assert panel.sources["distortion_mm"].text().startswith("default (none)")
+    panel.distortion.setValue(2.5)
+    panel.distortion.editingFinished.emit()
+    assert window.xray.intrinsics.distortion_mm == 2.5 and window.geometry_overrides == {"distortion_mm": 2.5}
+    assert panel.sources["distortion_mm"].text().startswith("entered by hand")
+    panel.apply_preset("ii_9inch")  # a device preset sets SDD, spacing and SOD; the unit's calibration stays
+    assert window.xray.intrinsics.distortion_mm == 2.5 and window.xray.intrinsics.sdd_mm == 1000.0
+    panel.reset_button.click()
+    assert window.xray.intrinsics.distortion_mm == 0.0 and panel.distortion.value() == 0.0

@@ -10,6 +10,7 @@ import functools
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -169,6 +170,31 @@ def test_gaussian_bead_centroid_is_projected_centre(name):
         magnification = geometry.magnification(pose, BEAD_LPS)
         total = level.mu_per_mm.sum(dtype=np.float64) * 0.4**3 * magnification**2 / (1.0 * 1.2)
         assert image.sum(dtype=np.float64) == pytest.approx(total, rel=0.005 if name == "cpu" else 0.01)
+
+
+def test_a_distorted_detector_shows_a_bead_where_the_distortion_puts_it():
+    """An intensifier's pincushion (``CarmIntrinsics.distortion_mm``): the bead's image moves outward to
+    ``distort(P x)``, by several pixels 80 mm from the centre; the pinhole's stays at ``P x``."""
+    bead = np.array([45.0, -6.0, 20.0])
+    level = gaussian_bead_level(bead)
+    intr = CarmIntrinsics(1000.0, (1.0, 1.0), (200, 200), distortion_mm=6.0)
+    geometry = CarmGeometry(intr, (0.0, 0.0, 0.0), 600.0)
+    ideal = project(geometry.projection_matrix(CarmPose()), bead[None])[0]
+    shown = intr.distortion.distort(ideal)
+    assert 60 < np.linalg.norm(ideal - 99.5) < 90 and np.linalg.norm(shown - ideal) > 2.0
+    distorted = render_line_integrals(level, geometry, CarmPose())
+    assert np.linalg.norm(weighted_centroid_uv(distorted) - shown) < 0.1
+    pinhole = render_line_integrals(level, geometry.with_intrinsics(replace(intr, distortion_mm=0.0)), CarmPose())
+    assert np.linalg.norm(weighted_centroid_uv(pinhole) - ideal) < 0.05
+
+
+def test_the_vtk_engine_refuses_a_distorted_detector():
+    from carmreg.logic.drr.vtk_raycast import render_line_integrals_vtk
+    from carmreg.logic.errors import GeometryError
+
+    geometry = CarmGeometry(CarmIntrinsics(1000.0, (1.0, 1.0), (50, 50), distortion_mm=2.0), (0.0, 0.0, 0.0), 600.0)
+    with pytest.raises(GeometryError, match=r"renders a pinhole camera; .* \(--engine cpu\)"):
+        render_line_integrals_vtk(gaussian_bead_level(BEAD_LPS), geometry, CarmPose())
 
 
 @pytest.mark.parametrize("name", ENGINES)

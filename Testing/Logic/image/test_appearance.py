@@ -3,6 +3,7 @@ storage against the DRR database (bone dark, bone bright, an 8-bit JPEG with gam
 through the real loader), orientation (a mirrored display is refused, never named with confidence)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,12 +13,14 @@ from simulated_cases import simulated_ap_case
 
 from carmreg.logic.errors import CancelledError
 from carmreg.logic.image.appearance import decide_polarity, rank_image
-from carmreg.logic.image.field import field_mask
+from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 from carmreg.logic.registration.spatial import spatial_search
+
+SHARED = Path(__file__).resolve().parents[3].parent / "shared"
 
 
 def test_rank_image_is_the_same_for_any_increasing_storage():
@@ -46,6 +49,30 @@ def test_field_is_found_whichever_way_bone_is_shown():
     assert (a & b).sum() / (a | b).sum() > 0.97
     assert not a[:10, :10].any() and not b[-10:, -10:].any() and a[100, 110] and b[100, 110]
     assert 0.8 < a.sum() / disc.sum() < 1.0  # eroded by ~2 % of its size, no more
+
+
+def _disc(shape, centre, radius):
+    rows, cols = np.mgrid[:shape[0], :shape[1]]
+    return (rows - centre[0]) ** 2 + (cols - centre[1]) ** 2 < radius ** 2
+
+
+@pytest.mark.parametrize("mask, round_", [
+    (_disc((300, 320), (150, 160), 140), True),                             # an intensifier's field
+    (_disc((300, 320), (150, 160), 200), True),                             # ... larger than the image
+    (_disc((300, 320), (150, 160), 140) & (np.mgrid[:300, :320][0] > 60), True),  # ... part burnt out
+    (np.pad(np.ones((200, 200), bool), 50), False),                         # a square collimation
+    (np.pad(np.ones((280, 180), bool), ((10, 10), (70, 70))), False),        # a body outline in air
+    (np.pad(np.ones((200, 200), bool) & ~_disc((200, 200), (0, 0), 40), 50), False),  # a cut corner
+])
+def test_a_round_field_is_told_from_a_rectangular_one(mask, round_):
+    assert round_field(mask) is round_
+
+
+def test_a_real_fluoroscopy_image_intensifier_field_is_round():
+    path = SHARED / "data" / "real-xray-dicom" / "siemens_rf_fluoro.dcm"
+    if not path.is_file():
+        pytest.skip(f"{path} not found (../shared)")
+    assert round_field(field_mask(load_xray(path, sdd_mm=1000.0, pixel_spacing_mm=0.3).pixels))
 
 
 def test_shutter_shadow_with_scatter_glow_is_left_out_of_the_field():

@@ -19,7 +19,8 @@ def _session(tmp_path):
     ct.write_bytes(b"x")
     xray.write_bytes(b"x")
     return s.Session(ct_path=str(ct), xray_path=str(xray),
-                     geometry_overrides={"sdd_mm": 1020.0, "pixel_spacing_mm": [0.194, 0.194], "preset": "fp"},
+                     geometry_overrides={"sdd_mm": 1020.0, "pixel_spacing_mm": [0.194, 0.194], "preset": "fp",
+                                         "distortion_mm": -1.25},
                      ct_points=[{"label": "L1", "position_lps_mm": [1.5, -2.25, 30.0]},
                                 {"label": "T12", "position_lps_mm": [1.0, -2.0, 61.125]}],
                      xray_points=[{"label": "T12", "uv_px": [100.25, 50.5]}, {"label": None, "uv_px": [3, 4]}],
@@ -65,6 +66,8 @@ def test_unnamed_ct_point_cannot_become_landmarks():
     ('{"format": "carmreg-session", "landmarks": {"ct": [{"label": "T1"}]}}', "position_lps_mm"),
     ('{"format": "carmreg-session", "landmarks": {"xray": [{"uv_px": [1, "a"]}]}}', "uv_px"),
     ('{"format": "carmreg-session", "geometry_overrides": {"sid": 3}}', "unknown geometry field"),
+    ('{"format": "carmreg-session", "geometry_overrides": {"distortion_mm": "4 mm"}}',
+     "geometry override distortion_mm = '4 mm' is not a number of mm"),
 ])
 def test_bad_session_files_raise_input_file_error_naming_the_file(tmp_path, text, match):
     path = tmp_path / "bad.carmreg.json"

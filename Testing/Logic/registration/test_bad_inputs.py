@@ -142,6 +142,9 @@ def test_missing_sdd_or_pixel_spacing_without_manual_value(case):
                                             r"detector"),
     ({"principal_point_px": (float("nan"), 80.0)}, r"principal point \(nan, 80.0\) px lies off"),
     ({"sod_mm": 0.0}, r"source-to-patient distance 0.0 mm is not positive; give --sod-mm"),
+    ({"distortion_mm": 12.0}, r"distortion 12 mm at 100 mm from the centre is not plausible: give "
+                              r"--distortion-mm from the C-arm's calibration"),
+    ({"distortion_mm": float("nan")}, r"distortion nan mm at 100 mm from the centre is not plausible"),
     ({"sod_mm": 1500.0}, r"source-to-patient distance 1500 mm is not shorter than the source-to-detector "
                          r"distance 1000 mm"),
 ])

@@ -5,6 +5,7 @@ every visible unfitted level within 5 mm on the detector of where the true pose 
 level's label on the right vertebra.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -12,10 +13,16 @@ import pytest
 
 from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import CancelledError
-from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose
+from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose, project
 from carmreg.logic.geometry.volume import MuPyramid
 from carmreg.logic.io.xray import XrayImage, load_xray
-from carmreg.logic.registration.pipeline import STAGES, CarmRegLogic, RegistrationParameters, final_drr_detector
+from carmreg.logic.registration.pipeline import (
+    STAGES,
+    UNCORRECTED_INTENSIFIER,
+    CarmRegLogic,
+    RegistrationParameters,
+    final_drr_detector,
+)
 from carmreg.logic.report.result_files import fine_stage_pose, save_result
 from carmreg.logic.simulation.evaluation import evaluate
 from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
@@ -61,6 +68,36 @@ def test_unfitted_levels_land_within_5_mm_and_are_named_correctly(sample, cache,
     mpde = {s.name: s.mpde_mm for s in result.stages}
     assert mpde["fine"] < mpde["depth"] <= mpde["spatial"] + 1e-9      # each stage lowers the error
     assert mpde["fine"] < 3.0
+
+
+def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose_does(sample, cache):
+    """An intensifier image with 8 mm of pincushion at its rim (no S-distortion), registered with its calibration
+    (``distortion_mm`` = the simulator's k 100^3): the levels not clicked land within 1.5 mm of the true pose's
+    projections (this case with a pinhole camera: 3.4 mm), and the result gives levels and clicks where the X-ray
+    shows them."""
+    ct, labels, centroids = sample
+    rng = np.random.default_rng(502)
+    options = dataclasses.replace(sample_options(rng, SimulationOptions(size_px=(384, 384), pixel_spacing_mm=0.6)),
+                                  pincushion_edge_mm=8.0, s_distortion_edge_mm=0.0)
+    geometry = default_geometry(ct, options)
+    inner = centroids.sorted().labels[3:-2]
+    pose = random_pose(rng, options, centroids, inner[int(rng.integers(len(inner)))], geometry=geometry)
+    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=2)
+    intr = dataclasses.replace(geometry.intrinsics, distortion_mm=sim.distortion.k_per_mm2 * 100.0**3)
+    xray = XrayImage(sim.pixels.astype(np.float32), intr, geometry.sod_mm, True, "sim-2")
+    result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels))
+    assert result.ok and result.level_check.status == "confident", result.warnings
+    assert score["max_unfitted_pde_pose_mm"] < 1.5, score["levels"]
+    assert UNCORRECTED_INTENSIFIER not in result.warnings  # its round field is calibrated; without, it is said
+    pinhole = dataclasses.replace(xray, intrinsics=geometry.intrinsics)
+    assert UNCORRECTED_INTENSIFIER in CarmRegLogic().prepare(ct, centroids, pinhole, sim.clicks).warnings
+    points = centroids.as_dict()
+    for level in result.levels:
+        shown = intr.distortion.distort(project(result.projection_matrix, points[level["label"]][None])[0])
+        np.testing.assert_allclose(level["uv_px"], shown, atol=1e-6)
+    clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv["clicked_uv_px"] is not None}
+    np.testing.assert_allclose([clicked[lb] for lb in sim.clicks.labels], sim.clicks.uv_px, atol=1e-6)
 
 
 def test_same_inputs_same_result_bit_for_bit(sample, cache):
