@@ -146,14 +146,13 @@ def _render_row(flat, shape, src_ijk, det0_ijk, du_ijk, dv_ijk, cam_u_mm, cam_v_
     n0, n1, n2 = shape
     s0, s1, s2 = src_ijk[b, 0], src_ijk[b, 1], src_ijk[b, 2]
     cv = cam_v_mm[v]
-    k = k_per_mm2
     for u in range(spans[v, 0], spans[v, 1]):
         p0 = det0_ijk[b, 0] + u * du_ijk[b, 0] + v * dv_ijk[b, 0]
         p1 = det0_ijk[b, 1] + u * du_ijk[b, 1] + v * dv_ijk[b, 1]
         p2 = det0_ijk[b, 2] + u * du_ijk[b, 2] + v * dv_ijk[b, 2]
         cu = cam_u_mm[u]
-        if k != 0.0:  # radial distortion: the pixel's ray goes to the ideal point d' (1 - k |d'|^2)
-            shrink = k * (cu * cu + cv * cv)
+        if k_per_mm2 != 0.0:  # radial distortion: the pixel's ray goes to the ideal point d' (1 - k |d'|^2)
+            shrink = k_per_mm2 * (cu * cu + cv * cv)
             ru, rv = (u - centre_px[0]) * shrink, (v - centre_px[1]) * shrink
             p0 -= ru * du_ijk[b, 0] + rv * dv_ijk[b, 0]
             p1 -= ru * du_ijk[b, 1] + rv * dv_ijk[b, 1]

@@ -25,7 +25,9 @@ node (name)            file                         what
 =====================  ===========================  ======================================================
 
 A projected level lies on the ray from the X-ray source through its CT centroid, where that ray meets the
-detector plane: ``pixel_to_detector_lps(geometry, pose, uv_px)`` with ``uv_px = project(P, centroid)``. The
+detector plane: ``pixel_to_detector_lps(geometry, pose, uv_px)`` with ``uv_px = project(P, centroid)`` (with an
+image intensifier's distortion given, ``geometry.distortion``: where the X-ray shows it, off that ray by the
+distortion, so that it sits on the level in the X-ray volume). The
 X-ray and DRR voxels are laid out by ``result_files.detector_ijk_to_lps``, so a projected level sits on the
 X-ray voxel of its pixel. The scene is MRML XML written here directly (no Slicer needed at run time); the
 tests read it with Slicer's own scene loader (``slicer-core``).
