@@ -14,6 +14,9 @@ connected part of the rest (holes filled: burnt-in text and dense metal inside t
 plausible is found (< 5 % of the image) the whole image is the field. The rule does not depend on which way bone
 is displayed, so it can be found *before* the polarity (``appearance``).
 
+``round_field`` tells an image intensifier's round field from a rectangular collimation (the pipeline warns when
+such an image comes without a distortion calibration).
+
 ``display_range`` is the X-ray's default contrast, used by the window's X-ray view and by every overlay (window,
 report page, ``overlay.png``): the 1st-99th percentiles of the field's pixels, clipped pixels left out - those at
 the field's lowest or highest value when they are more than 0.1 % of it (burned-out air at the detector's
