@@ -94,6 +94,17 @@ def build_parser() -> argparse.ArgumentParser:
     drr.add_argument("--xray", help="take the detector geometry from this X-ray instead")
     _geometry_args(drr)
 
+    cal = sub.add_parser("calibrate-distortion", help="measure an image intensifier's pincushion on an X-ray of a "
+                         "bead grid (for --distortion-mm)")
+    cal.add_argument("--image", required=True, help="X-ray of a plate of beads on a square grid at the "
+                     "intensifier's input: DICOM, PNG, TIFF or JPEG")
+    cal.add_argument("--pixel-spacing-mm", type=float, nargs="+", metavar="MM",
+                     help="detector pixel spacing: one value, or column then row (default: the DICOM's)")
+    cal.add_argument("--principal-point-px", type=float, nargs=2, metavar=("U", "V"),
+                     help="the distortion's centre (column, row) px; default: image centre")
+    cal.add_argument("--bead-mm", type=float, default=2.0, help="the beads' size in the image, mm (default 2)")
+    cal.add_argument("--frame", type=int, help="frame of a multi-frame X-ray (0-based)")
+
     sim = sub.add_parser("simulate", help="simulate an intraoperative X-ray with known ground truth")
     sim.add_argument("--ct", help="CT (default: the sample CT)")
     sim.add_argument("--vertebrae", help="vertebra label map on the CT grid (default: the sample's)")
@@ -350,6 +361,24 @@ def cmd_drr(args) -> int:
     return EXIT_OK
 
 
+def cmd_calibrate_distortion(args) -> int:
+    from carmreg.logic.image.grid_calibration import calibrate
+    from carmreg.logic.io.xray import load_xray
+
+    image = load_xray(args.image, pixel_spacing_mm=_spacing(args.pixel_spacing_mm), frame=args.frame)
+    spacing = _spacing(args.pixel_spacing_mm) or (image.intrinsics.pixel_spacing_mm if image.intrinsics else None)
+    if spacing is None:
+        raise CarmRegError(f"{args.image}: the detector pixel spacing is not in the file; give --pixel-spacing-mm")
+    if not 0.0 < args.bead_mm <= 20.0:
+        raise CarmRegError(f"--bead-mm {args.bead_mm:g}: give the beads' size in the image, 0.5 to 20 mm")
+    cal = calibrate(image.pixels, spacing, args.principal_point_px, args.bead_mm)
+    print(f"pincushion {cal.distortion_mm:.2f} mm at 100 mm from the centre, from {cal.beads} beads on a "
+          f"{cal.grid_step_mm:.2f} mm grid; fit rms {cal.rms_mm:.3f} mm ({cal.rms_pinhole_mm:.3f} mm without it)")
+    print(f"use: --distortion-mm {cal.distortion_mm:.2f} (window: C-arm geometry, Pincushion; 3D Slicer: Pincushion "
+          "at 100 mm), for X-rays of this C-arm at this field size and orientation")
+    return EXIT_OK
+
+
 def cmd_simulate(args) -> int:
     from carmreg.cli_simulate import run_cli
 
@@ -405,7 +434,7 @@ def cmd_screenshot(args) -> int:
 
 
 COMMANDS = {"register": cmd_register, "demo": cmd_demo, "drr": cmd_drr, "simulate": cmd_simulate,
-            "gui": cmd_gui, "screenshot": cmd_screenshot}
+            "calibrate-distortion": cmd_calibrate_distortion, "gui": cmd_gui, "screenshot": cmd_screenshot}
 
 
 def main(argv=None) -> int:
@@ -422,7 +451,7 @@ def main(argv=None) -> int:
         return 130
 
 
-WINDOWLESS = ("register", "demo", "drr", "simulate")
+WINDOWLESS = ("register", "demo", "drr", "simulate", "calibrate-distortion")
 """Commands whose process ends at once when ``main`` returns (``run``)."""
 
 

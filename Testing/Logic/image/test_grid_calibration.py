@@ -1,0 +1,81 @@
+"""An intensifier's pincushion measured on a bead-grid X-ray (``image.grid_calibration``, ``carmreg
+calibrate-distortion``): grids drawn through CarmReg's model are recovered exactly, a grid drawn through another
+pincushion model gives that model's shift 100 mm out, and what is no grid is refused in one line."""
+
+import numpy as np
+import pytest
+
+from carmreg.cli import main
+from carmreg.logic.errors import RegistrationError
+from carmreg.logic.geometry.distortion import RadialDistortion
+from carmreg.logic.image.grid_calibration import calibrate
+from carmreg.logic.io.xray import write_png16
+
+SIZE, PIXEL_MM, STEP_MM = 768, 0.3, 8.0
+CENTRE = (SIZE - 1) / 2.0
+
+
+def grid_image(shift_mm: float, model: str = "carmreg", beads_dark: bool = True, seed: int = 0) -> np.ndarray:
+    """A 768 px (0.3 mm) intensifier image of beads (0.7 mm sd) on an 8 mm grid turned 5 deg and off-centre, in a
+    220 mm round field (0 outside), with noise. ``model``: "carmreg" = ``RadialDistortion.distort``; "forward" =
+    the ideal radius r shown at r (1 + k r^2), k = shift / 100^3 (how the appearance benchmark draws it)."""
+    turn = np.radians(5.0)
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    ideal_mm = np.mgrid[-16:17, -16:17].reshape(2, -1).T @ rotation.T * STEP_MM + [1.3, -0.7]
+    if model == "carmreg":
+        shown = RadialDistortion.from_shift(shift_mm, (CENTRE, CENTRE), (PIXEL_MM, PIXEL_MM)).distort(
+            ideal_mm / PIXEL_MM + CENTRE)
+    else:
+        shown = ideal_mm * (1 + shift_mm / 100.0**3 * (ideal_mm**2).sum(1, keepdims=True)) / PIXEL_MM + CENTRE
+    rows, cols = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    beads = np.zeros((SIZE, SIZE))
+    sd_px = 0.7 / PIXEL_MM
+    for u, v in shown[(shown.min(1) > 0) & (shown.max(1) < SIZE - 1)]:
+        box = (slice(int(v) - 8, int(v) + 9), slice(int(u) - 8, int(u) + 9))
+        beads[box] += np.exp(-((cols[box] - u) ** 2 + (rows[box] - v) ** 2) / (2 * sd_px**2))
+    image = (1000.0 - 600.0 * beads if beads_dark else 300.0 + 600.0 * beads)
+    image += np.random.default_rng(seed).normal(0.0, 15.0, image.shape)
+    image[(cols - CENTRE) ** 2 + (rows - CENTRE) ** 2 > (110.0 / PIXEL_MM) ** 2] = 0.0
+    return np.clip(image, 0, 65535)
+
+
+@pytest.mark.parametrize("shift_mm, beads_dark", [(3.0, True), (-1.5, True), (0.0, False), (6.0, False)])
+def test_a_grid_drawn_through_carmregs_model_gives_its_shift_back(shift_mm, beads_dark):
+    cal = calibrate(grid_image(shift_mm, beads_dark=beads_dark), (PIXEL_MM, PIXEL_MM))
+    assert cal.distortion_mm == pytest.approx(shift_mm, abs=0.03)
+    assert cal.beads > 450 and cal.rms_mm < 0.04 and cal.grid_step_mm == pytest.approx(STEP_MM, abs=0.1)
+    if shift_mm:
+        assert cal.rms_pinhole_mm > 5 * cal.rms_mm  # the pincushion explains what a pinhole leaves
+
+
+def test_a_grid_drawn_through_another_model_gives_that_models_shift_100_mm_out():
+    """r (1 + k r^2) with k = 3e-6: an image point 100 mm out comes from r = 97.19 mm, a 2.81 mm shift; the fit over
+    the whole field (out to 110 mm) finds within 0.15 mm of it."""
+    ideal_r = 100.0
+    for _ in range(50):
+        ideal_r = 100.0 / (1 + 3e-6 * ideal_r**2)
+    cal = calibrate(grid_image(3.0, model="forward"), (PIXEL_MM, PIXEL_MM))
+    assert cal.distortion_mm == pytest.approx(100.0 - ideal_r, abs=0.15)
+
+
+def test_an_image_without_a_grid_is_refused():
+    rng = np.random.default_rng(4)
+    blank = 1000.0 + rng.normal(0.0, 15.0, (400, 400))
+    with pytest.raises(RegistrationError, match="found 0 beads on one grid .* needs at least 16"):
+        calibrate(blank, (0.3, 0.3))
+    scattered = blank.copy()
+    rows, cols = np.mgrid[0:400, 0:400]
+    for u, v in rng.uniform(30, 370, (60, 2)):
+        scattered -= 600.0 * np.exp(-((cols - u) ** 2 + (rows - v) ** 2) / 10.0)
+    with pytest.raises(RegistrationError, match="needs at least 16|do not lie on one distorted grid"):
+        calibrate(scattered, (0.3, 0.3))
+
+
+def test_the_command_prints_the_value_to_give_and_refuses_in_one_line(tmp_path, capsys):
+    png = write_png16(tmp_path / "grid.png", grid_image(3.0).astype(np.uint16))
+    assert main(["calibrate-distortion", "--image", str(png), "--pixel-spacing-mm", str(PIXEL_MM)]) == 0
+    out = capsys.readouterr().out
+    assert "pincushion 3.00 mm at 100 mm from the centre" in out and "use: --distortion-mm 3.00" in out
+    assert main(["calibrate-distortion", "--image", str(png)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the detector pixel spacing is not in the file; give --pixel-spacing-mm" in err
