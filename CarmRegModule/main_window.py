@@ -277,6 +277,7 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         self.ct_panel.place_check.toggled.connect(lambda on: self.act_place.setChecked(
             on or self.xray_panel.place_check.isChecked()))
         self.geometry_panel.overrides_changed.connect(self._action_geometry)
+        self.geometry_panel.measure_distortion_requested.connect(self._action_measure_distortion)
         self.ct_panel.import_requested.connect(self._action_import_ct)
         self.ct_panel.export_requested.connect(self._action_export_ct)
         self.ct_panel.propose_requested.connect(self._action_propose_centroids)

@@ -11,7 +11,7 @@ from .qt_common import report_errors
 
 STEPS = ("Data", "CT points", "X-ray points", "Register", "Check")
 VOLUME_FILTER = "CT volumes (*.nrrd *.nhdr *.nii *.nii.gz *.mha *.mhd *.dcm);;All files (*)"
-XRAY_FILTER = "X-ray images (*.dcm *.dicom *.png *.tif *.tiff);;All files (*)"
+XRAY_FILTER = "X-ray images (*.dcm *.dicom *.png *.tif *.tiff *.jpg *.jpeg);;All files (*)"
 MRK_FILTER = "Slicer markups (*.mrk.json);;JSON (*.json);;All files (*)"
 SESSION_FILTER = "CarmReg session (*.carmreg.json);;JSON (*.json)"
 
@@ -174,6 +174,15 @@ class WindowActions:
         except CarmRegError:
             self.geometry_panel.set_xray(self.xray, self.geometry_overrides)  # show what is really in force
             raise
+
+    @report_errors
+    def _action_measure_distortion(self, *_):
+        path = self.dialogs.open_file("Bead-grid X-ray of this C-arm", XRAY_FILTER)
+        if path:
+            cal = self.measure_distortion(path)
+            self.dialogs.info("Pincushion measured", f"{cal.distortion_mm:.2f} mm at 100 mm from the centre, from "
+                              f"{cal.beads} beads on a {cal.grid_step_mm:.2f} mm grid (fit rms {cal.rms_mm:.3f} mm; "
+                              f"{cal.rms_pinhole_mm:.3f} mm without it). It is now this X-ray's Pincushion.")
 
     @report_errors
     def _action_import_ct(self, *_):

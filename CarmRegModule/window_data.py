@@ -106,6 +106,24 @@ class WindowData:
         xray = dataclasses.replace(self.xray, intrinsics=new_intr, sod_mm=kw.get("sod_mm", self.xray.sod_mm))
         self.set_xray_image(xray, None, overrides)
 
+    def measure_distortion(self, path: str | Path):
+        """The pincushion measured on a bead-grid X-ray of this C-arm (``image.grid_calibration``), set as the
+        X-ray's ``distortion_mm`` override; the grid image's own pixel spacing, else the X-ray's (same size)."""
+        from carmreg.logic.image.grid_calibration import calibrate
+        from carmreg.logic.io.xray import load_xray
+
+        if self.xray is None or self.xray.intrinsics is None:
+            raise InputFileError("load the X-ray and complete its geometry before measuring its pincushion")
+        grid = load_xray(path)
+        spacing = grid.intrinsics.pixel_spacing_mm if grid.intrinsics is not None else None
+        if spacing is None and grid.size_px != self.xray.size_px:
+            raise InputFileError(f"{path}: the grid image ({grid.size_px[0]} x {grid.size_px[1]} px) is not the "
+                                 "X-ray's size and states no pixel spacing; export it as the X-rays are")
+        cal = calibrate(grid.pixels, spacing or self.xray.intrinsics.pixel_spacing_mm,
+                        self.xray.intrinsics.principal_point_px)
+        self.geometry_panel.set_value("distortion_mm", round(cal.distortion_mm, 2))
+        return cal
+
     def load_sample_case(self) -> None:
         """Load the embedded sample: CT, X-ray (DICOM with geometry) and the centroids on both."""
         from carmreg.logic.resources import sample_case

@@ -37,6 +37,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
     """The C-arm geometry form (see module docstring)."""
 
     overrides_changed = QtCore.Signal(dict)
+    measure_distortion_requested = QtCore.Signal()
 
     def __init__(self, parent=None):
         super().__init__("C-arm geometry", parent)
@@ -97,6 +98,11 @@ class GeometryPanel(QtWidgets.QGroupBox):
         grid.addWidget(self.pp_centre, 6, 2, 1, 2)
         self.pp_centre.toggled.connect(self._centre_toggled)
         self.sources["principal_point_px"].hide()
+        self.measure_button = QtWidgets.QPushButton("Measure the pincushion on a bead-grid X-ray...")
+        self.measure_button.setToolTip("An X-ray of a plate of beads on a square grid at the intensifier's input, "
+                                       "taken with this C-arm (carmreg calibrate-distortion)")
+        self.measure_button.clicked.connect(self.measure_distortion_requested)
+        grid.addWidget(self.measure_button, 11, 0, 1, 4)
         grid.addWidget(self.sources["principal_point_px"], 12, 0, 1, 4)
         self.size_label = QtWidgets.QLabel()
         self.size_label.setObjectName("hint")

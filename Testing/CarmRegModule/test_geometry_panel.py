@@ -1,5 +1,6 @@
 """The C-arm geometry panel: values and their sources, device presets, hand edits, refusal of impossible values."""
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.gui
@@ -82,3 +83,26 @@ def test_a_calibrated_pincushion_is_entered_kept_by_a_preset_and_reset(window, s
     assert window.xray.intrinsics.distortion_mm == 2.5 and window.xray.intrinsics.sdd_mm == 1000.0
     panel.reset_button.click()
     assert window.xray.intrinsics.distortion_mm == 0.0 and panel.distortion.value() == 0.0
+
+
+def test_the_pincushion_is_measured_on_a_bead_grid_x_ray_and_set(window, tmp_path):
+    """The button opens a bead-grid X-ray of the same detector and sets the Pincushion it measures."""
+    from grid_images import PIXEL_MM, grid_image
+
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.io.xray import XrayImage, write_png16
+
+    grid = grid_image(3.0)
+    patient = XrayImage(grid.astype(np.float32), CarmIntrinsics(1000.0, (PIXEL_MM, PIXEL_MM), grid.shape[::-1]),
+                        600.0, True, "in memory")
+    window.set_xray_image(patient, None, {})
+    png = write_png16(tmp_path / "grid.png", grid.astype(np.uint16))
+    window.dialogs.answers["open_file"] = [str(png)]
+    window.geometry_panel.measure_button.click()
+    title, message, _ = window.dialogs.messages[-1]
+    assert title == "Pincushion measured" and message.startswith("3.00 mm at 100 mm from the centre")
+    assert window.xray.intrinsics.distortion_mm == 3.0 and window.geometry_panel.distortion.value() == 3.0
+    window.dialogs.answers["open_file"] = [str(tmp_path / "missing.png")]
+    window.geometry_panel.measure_button.click()
+    assert "missing.png: X-ray file not found" in window.dialogs.messages[-1][1]
+    assert window.xray.intrinsics.distortion_mm == 3.0  # a failed measurement changes nothing
