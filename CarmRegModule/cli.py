@@ -365,8 +365,9 @@ def cmd_calibrate_distortion(args) -> int:
     from carmreg.logic.image.grid_calibration import calibrate
     from carmreg.logic.io.xray import load_xray
 
-    image = load_xray(args.image, pixel_spacing_mm=_spacing(args.pixel_spacing_mm), frame=args.frame)
-    spacing = _spacing(args.pixel_spacing_mm) or (image.intrinsics.pixel_spacing_mm if image.intrinsics else None)
+    manual = _spacing(args.pixel_spacing_mm)
+    image = load_xray(args.image, pixel_spacing_mm=manual, frame=args.frame)
+    spacing = manual or (image.intrinsics.pixel_spacing_mm if image.intrinsics else None)
     if spacing is None:
         raise CarmRegError(f"{args.image}: the detector pixel spacing is not in the file; give --pixel-spacing-mm")
     if not 0.0 < args.bead_mm <= 20.0:

@@ -27,17 +27,18 @@ def build_result(state: RegistrationState) -> RegistrationResult:
     pose = CarmPose.from_array(state.pose)
     P = state.geometry.projection_matrix(pose)
     intr = state.geometry.intrinsics
+    warp = intr.distortion
     fitted = set(state.pairs.labels) if state.pairs is not None else set()
     clicked = dict(zip(state.pairs.labels, state.pairs.uv_px, strict=True)) if state.pairs is not None else {}
     named = name_margins(state.identification)
     levels = []
     for label, point in sorted(state.ct_landmarks.as_dict().items(), key=lambda kv: level_index(kv[0])):
-        uv = intr.distortion.distort(project(P, point[None])[0])  # where the X-ray shows it
+        uv = warp.distort(project(P, point[None])[0])  # where the X-ray shows it
         pde = float(pde_mm(P, point[None], clicked[label][None], intr.pixel_spacing_mm)[0]) \
             if label in clicked else None
         levels.append({"label": label, "uv_px": [float(uv[0]), float(uv[1])], "fitted": label in fitted,
                        "pde_mm": pde, "in_image": in_detector(uv, intr.size_px),
-                       "clicked_uv_px": [float(x) for x in intr.distortion.distort(clicked[label])]
+                       "clicked_uv_px": [float(x) for x in warp.distort(clicked[label])]
                        if label in clicked else None,
                        "name_margin": named.get(label)})
     problems = result_problems(state, pose)

@@ -141,15 +141,12 @@ def clicks_file(mode: str, truth: dict, ct_labels: list[str], folder: Path, rng)
 
 # ----------------------------------------------------------------------------------------------- one run
 
-CALIBRATED = {"distortion": False}
-"""``--calibrated-distortion``: give each intensifier case its pincushion's radial coefficient (``--distortion-mm``),
-as a calibrated C-arm would; the centre offset and vertical stretch the scene also has stay unknown."""
-
-
 def distortion_args(truth: dict) -> list[str]:
-    """``--distortion-mm`` of the scene's pincushion (k r^3 at r = 100 mm) when calibrated (``CALIBRATED``)."""
+    """``--distortion-mm`` of the scene's pincushion (k r^3 at r = 100 mm), as a calibrated C-arm would give it
+    (``--calibrated-distortion``; the centre offset and vertical stretch the scene also has stay unknown); none
+    for a scene without one."""
     k = (truth.get("distortion") or {}).get("k_per_mm2")
-    return ["--distortion-mm", f"{k * 100.0**3:.4f}"] if CALIBRATED["distortion"] and k else []
+    return ["--distortion-mm", f"{k * 100.0**3:.4f}"] if k else []
 
 
 def register(xray: Path, ct: Path, ct_lm: Path, clicks: Path | None, out: Path, detector: app.Detector,
@@ -242,7 +239,7 @@ def run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
 def _run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
     (job["out"] / "result.json").unlink(missing_ok=True)
     code, seconds, err = register(job["xray"], job["ct"], job["ct_lm"], job["clicks"], job["out"], job["detector"],
-                                  cache_dir, timeout_s, distortion_args(job["truth"]))
+                                  cache_dir, timeout_s, job.get("register_args", ()))
     result = None
     result_path = job["out"] / "result.json"
     if code in (0, 1) and result_path.is_file():
@@ -354,8 +351,9 @@ def write_results(out: Path, rows: list[dict], meta: dict) -> None:
 
 # ----------------------------------------------------------------------------------------------- main
 
-def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[str], done: set, work: Path
-                  ) -> list[dict]:
+def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[str], done: set, work: Path,
+                  calibrated: bool = False) -> list[dict]:
+    """The runs of one case still to do; ``calibrated``: each is given its scene's pincushion (``distortion_args``)."""
     todo = [(v, m) for v in variants for m in modes if (case, v, m) not in done]
     if not todo:
         return []
@@ -376,7 +374,8 @@ def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[
             jobs.append({"case": case, "ct_name": maker.ct_name(case), "variant": v, "mode": m,
                          "xray": made["xray"], "ct": ct_path, "ct_lm": lm_path, "clicks": clicks,
                          "out": folder / f"out_{m}", "detector": scenes[app.VARIANTS[v].detector].detector,
-                         "truth": made["truth"], "given": given, "centroids": centroids.as_dict()})
+                         "truth": made["truth"], "given": given, "centroids": centroids.as_dict(),
+                         "register_args": distortion_args(made["truth"]) if calibrated else []})
     return jobs
 
 
@@ -431,7 +430,6 @@ def main(argv=None) -> int:
     parser.add_argument("--rescore", action="store_true",
                         help="with --summary-only: score the runs again from the result.json files under --work")
     args = parser.parse_args(argv)
-    CALIBRATED["distortion"] = args.calibrated_distortion
     variants = [v for v in args.variants.split(",") if v]
     modes = [m for m in args.modes.split(",") if m]
     unknown = [v for v in variants if v not in app.VARIANTS] + [m for m in modes if m not in MODES]
@@ -460,7 +458,7 @@ def main(argv=None) -> int:
             if (args.half != "all" and half(case) != args.half) or (
                     args.ct != "any" and maker.ct_name(case) != args.ct):
                 continue
-            jobs = jobs_for_case(maker, case, variants, modes, done, args.work)
+            jobs = jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion)
             for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
                 rows.append(row)
                 print(f"case {row['case']:3d} {row['ct'][:5]} {row['variant']:<27} {row['mode']:<7} "
