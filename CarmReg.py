@@ -14,7 +14,7 @@ How ``carmreg`` becomes importable inside Slicer
 ``import_carmreg()`` loads the packages from the folders beside this file with the mapping of pyproject.toml
 (``carmreg`` = CarmRegModule/, ``carmreg.logic`` = Logic/, ``carmreg.resources`` = Resources/), so Slicer runs
 the code this module ships with; nothing is pip-installed for CarmReg itself. The Python packages Slicer lacks
-(numba, cma, nibabel, ...: ``Resources/requirements.txt``, pyproject's list without vtk) are installed on first
+(numba, nibabel, ...: ``Resources/requirements.txt``, pyproject's list without vtk) are installed on first
 use with ``slicer.packaging.pip_ensure`` (``slicer.util.pip_install`` on Slicer versions without it); never vtk
 or a Qt binding. The registration runs in ``carmreg.logic`` (no Qt); the desktop application (PySide6) is not
 used inside Slicer.

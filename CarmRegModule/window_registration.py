@@ -29,7 +29,7 @@ LOG = logging.getLogger("carmreg.gui")
 
 
 def _registration_api():
-    """The pipeline, imported on first use: it pulls in cma and numba, which the window does not need to start."""
+    """The pipeline, imported on first use: it pulls in numba and scipy, which the window does not need to start."""
     from carmreg.logic.registration import pipeline
     return pipeline
 

@@ -68,14 +68,14 @@ def fine_search(geometry: CarmGeometry, start_pose: np.ndarray, points_lps_mm: n
     while not es.stop():
         if should_stop is not None:
             should_stop()
-        population = np.asarray(es.ask())
+        population = es.ask()
         f, m = objective(geometry, population, points_lps_mm, uv_px, params.rotation_weight_mm_per_deg2)
-        es.tell(list(population), list(f))
+        es.tell(f)
         i = int(np.argmin(f))
         if f[i] < best[0]:
             best = (float(f[i]), float(m[i]), population[i].copy())
         result.convergence.append((es.countevals, best[1], best[0]))
-        result.trajectory.append((es.countevals, np.asarray(es.mean).copy()))
+        result.trajectory.append((es.countevals, es.mean))
     result.objective, result.mpde_mm, result.pose = best
     result.evaluations = es.countevals
     result.seconds = time.perf_counter() - t0

@@ -106,9 +106,9 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     while not es.stop():
         if should_stop is not None:
             should_stop()
-        population = np.asarray(es.ask())
+        population = es.ask()
         f, s, _ = objective(population)
-        es.tell(list(population), list(f))
+        es.tell(f)
         i = int(np.argmin(f))
         if f[i] < best[0]:
             best = (float(f[i]), float(s[i]), population[i].copy())

@@ -17,7 +17,8 @@ What the page shows, top to bottom:
   the final pose: the accuracy of what is on the page, not of an intermediate stage);
 - the **inputs**: file names, the C-arm geometry values and where each came from (DICOM tag, manual, preset,
   default);
-- the **versions** (CarmReg, Python, numpy, scipy, cma, numba) and the CMA-ES seed.
+- the **versions** (CarmReg, Python, numpy, scipy, numba; cma in results from before CarmReg ran its own CMA-ES)
+  and the CMA-ES seed.
 
 Every text block has its place on the page: a long one (an unclear image's reason and warnings) is set in smaller
 type, down to 6 pt, and beyond that cut with a pointer to result.json (``fit_text``), never printed over another.

@@ -55,10 +55,6 @@ def result_dict(result) -> dict:
     import numba
     import scipy
 
-    from carmreg.logic.registration.cma_search import import_cma
-
-    cma = import_cma()
-
     g = result.geometry
     intr = g.intrinsics
     return to_jsonable({
@@ -83,7 +79,7 @@ def result_dict(result) -> dict:
         "parameters": to_jsonable(result.parameters.as_dict()),
         "inputs": result.inputs,
         "reproducibility": {"carmreg": __version__, "python": platform.python_version(),
-                            "numpy": np.__version__, "scipy": scipy.__version__, "cma": cma.__version__,
+                            "numpy": np.__version__, "scipy": scipy.__version__,
                             "numba": numba.__version__, "seed": result.parameters.fine.seed},
     })
 
