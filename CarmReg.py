@@ -238,6 +238,11 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.distortion = self._spin_box(form, "Pincushion at 100 mm:", " mm", 10.0, "An image intensifier's "
                                        "distortion from the C-arm's calibration: how far an image point 100 mm from "
                                        "the centre lies outward of a pinhole camera's. 0 = none (flat panel)", -10.0)
+        ui.grid = self._node_selector(form, "GridXray", "Bead-grid X-ray (optional):")
+        ui.grid.toolTip = ("An X-ray of a square bead grid at this intensifier's input, same field size and "
+                           "orientation: Measure sets the Pincushion from it")
+        ui.measure = qt.QPushButton("Measure the pincushion on the bead-grid X-ray")
+        form.addRow(ui.measure)
         form = sections["register"]
         ui.metric = qt.QComboBox()
         ui.metric.addItems(list(slicer_nodes().METRICS))
@@ -266,6 +271,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.apply.connect("clicked(bool)", self.onApplyButton)
         ui.cancel.connect("clicked(bool)", lambda checked=False: self.logic.cancel())
         ui.export.connect("clicked(bool)", self.onExport)
+        ui.measure.connect("clicked(bool)", self.onMeasureDistortion)
         return ui
 
     # parameter node <-> GUI
@@ -283,7 +289,8 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
     def _selectors(self):
         ui = self.ui
         return {"CT": ui.ct, "CTPoints": ui.ctPoints, "Xray": ui.xray, "XrayPoints": ui.xrayPoints,
-                "CarmTransform": ui.carm, "DRR": ui.drr, "Overlay": ui.overlay, "ProjectedLevels": ui.levels}
+                "CarmTransform": ui.carm, "DRR": ui.drr, "Overlay": ui.overlay, "ProjectedLevels": ui.levels,
+                "GridXray": ui.grid}
 
     def updateGUIFromParameterNode(self, caller=None, event=None):
         node = self._parameterNode
@@ -359,6 +366,13 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             slicer.util.setSliceViewerLayers(background=self._parameterNode.GetNodeReference("Xray"),
                                              foreground=self._parameterNode.GetNodeReference("DRR"),
                                              foregroundOpacity=0.5, fit=True)
+
+    def onMeasureDistortion(self):
+        import slicer
+
+        with slicer.util.tryWithErrorDisplay("Measuring the pincushion failed.", waitCursor=True):
+            calibration = slicer_nodes().measure_distortion(self._parameterNode)
+            slicer.util.infoDisplay(f"{calibration.summary()}: it is now the Pincushion at 100 mm.")
 
     def onExport(self):
         import qt

@@ -373,8 +373,7 @@ def cmd_calibrate_distortion(args) -> int:
     if not 0.0 < args.bead_mm <= 20.0:
         raise CarmRegError(f"--bead-mm {args.bead_mm:g}: give the beads' size in the image, 0.5 to 20 mm")
     cal = calibrate(image.pixels, spacing, args.principal_point_px, args.bead_mm)
-    print(f"pincushion {cal.distortion_mm:.2f} mm at 100 mm from the centre, from {cal.beads} beads on a "
-          f"{cal.grid_step_mm:.2f} mm grid; fit rms {cal.rms_mm:.3f} mm ({cal.rms_pinhole_mm:.3f} mm without it)")
+    print(cal.summary())
     print(f"use: --distortion-mm {cal.distortion_mm:.2f} (window: C-arm geometry, Pincushion; 3D Slicer: Pincushion "
           "at 100 mm), for X-rays of this C-arm at this field size and orientation")
     return EXIT_OK

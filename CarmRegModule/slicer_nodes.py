@@ -21,7 +21,8 @@ LPS_TO_RAS_4 = ((-1.0, 0, 0, 0), (0, -1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0)
 NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiducialNode",
               "Xray": "vtkMRMLScalarVolumeNode", "XrayPoints": "vtkMRMLMarkupsFiducialNode",
               "CarmTransform": "vtkMRMLLinearTransformNode", "DRR": "vtkMRMLScalarVolumeNode",
-              "Overlay": "vtkMRMLVectorVolumeNode", "ProjectedLevels": "vtkMRMLMarkupsFiducialNode"}
+              "Overlay": "vtkMRMLVectorVolumeNode", "ProjectedLevels": "vtkMRMLMarkupsFiducialNode",
+              "GridXray": "vtkMRMLScalarVolumeNode"}
 OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
 DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "DistortionMm": "0", "Metric": "gc",
                       "CheckLevels": "true"}
@@ -131,6 +132,28 @@ def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0, dist
                                 {"sdd_mm": "manual" if sdd_mm else "default"}, float(distortion_mm or 0.0))
     return XrayImage(np.asarray(voxels[0], np.float32), intrinsics, sod_mm or None, True,
                      f"Slicer volume '{xray_node.GetName()}'")
+
+
+def measure_distortion(parameter_node):
+    """The pincushion measured on the parameter node's bead-grid X-ray ("GridXray", ``image.grid_calibration``) and
+    set as its ``DistortionMm``; returns the ``GridCalibration``. The grid's pixel spacing: the panel's, else its
+    file's or volume's (``xray_from_node``); its principal point: the X-ray's when one is selected and the grid
+    image has its size, else the grid image's centre. Raises CarmReg's errors (one clear line)."""
+    from carmreg.logic.image.grid_calibration import calibrate
+
+    grid_node = parameter_node.GetNodeReference("GridXray")
+    if grid_node is None:
+        raise ValueError("CarmReg: select the bead-grid X-ray (C-arm geometry) before measuring its pincushion")
+    _, spacing_mm, _, _, _, _ = parameters_from_node(parameter_node)
+    grid = xray_from_node(grid_node, pixel_spacing_mm=spacing_mm)
+    centre = None
+    xray_node = parameter_node.GetNodeReference("Xray")
+    if xray_node is not None:
+        xray = xray_from_node(xray_node, pixel_spacing_mm=spacing_mm)
+        centre = xray.intrinsics.principal_point_px if xray.size_px == grid.size_px else None
+    calibration = calibrate(grid.pixels, grid.intrinsics.pixel_spacing_mm, centre)
+    parameter_node.SetParameter("DistortionMm", f"{round(calibration.distortion_mm, 2):g}")
+    return calibration
 
 
 def set_transform(transform_node, result):

@@ -180,9 +180,8 @@ class WindowActions:
         path = self.dialogs.open_file("Bead-grid X-ray of this C-arm", XRAY_FILTER)
         if path:
             cal = self.measure_distortion(path)
-            self.dialogs.info("Pincushion measured", f"{cal.distortion_mm:.2f} mm at 100 mm from the centre, from "
-                              f"{cal.beads} beads on a {cal.grid_step_mm:.2f} mm grid (fit rms {cal.rms_mm:.3f} mm; "
-                              f"{cal.rms_pinhole_mm:.3f} mm without it). It is now this X-ray's Pincushion.")
+            text = cal.summary()
+            self.dialogs.info("Pincushion measured", f"{text[0].upper()}{text[1:]}. It is now this X-ray's Pincushion.")
 
     @report_errors
     def _action_import_ct(self, *_):

@@ -220,6 +220,30 @@ def test_parameter_node_defaults_and_bad_values(mrml):
         module.slicer_nodes().parameters_from_node(node)
 
 
+def test_the_pincushion_is_measured_on_a_bead_grid_volume_slicer_loaded(mrml, tmp_path):
+    """A bead-grid X-ray (DICOM) loaded by Slicer's volume reader, measured: the parameter node's DistortionMm is
+    set to the grid's pincushion (drawn at 3 mm); without a grid selected, one clear line."""
+    from grid_images import PIXEL_MM, grid_image
+
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.io.xray_write import write_xray_dicom
+
+    scene, logics, _ = mrml
+    module = _module()
+    pixels = grid_image(3.0).astype(np.uint16)
+    dcm = write_xray_dicom(tmp_path / "grid.dcm", pixels, CarmIntrinsics(1000.0, (PIXEL_MM, PIXEL_MM),
+                                                                          pixels.shape[::-1]))
+    grid = logics["volumes"].AddArchetypeVolume(str(dcm), "Bead grid", 0)
+    node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", "CarmReg grid")
+    module.slicer_nodes().set_default_parameters(node)
+    with pytest.raises(ValueError, match="select the bead-grid X-ray"):
+        module.slicer_nodes().measure_distortion(node)
+    node.SetNodeReferenceID("GridXray", grid.GetID())  # its pixel spacing: the DICOM file's
+    calibration = module.slicer_nodes().measure_distortion(node)
+    assert calibration.distortion_mm == pytest.approx(3.0, abs=0.05) and calibration.beads > 300
+    assert node.GetParameter("DistortionMm") == "3" and module.slicer_nodes().parameters_from_node(node)[5] == 3.0
+
+
 @pytest.mark.slow
 def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_xray(mrml, sample_nodes, tmp_path):
     from carmreg.logic.geometry.camera import project

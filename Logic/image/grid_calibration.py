@@ -49,6 +49,12 @@ class GridCalibration:
     grid_step_mm: float            # the lattice step seen near the centre, detector mm
     bead_uv_px: np.ndarray         # (n, 2) the fitted beads' image positions (column, row)
 
+    def summary(self) -> str:
+        """One line for the user: the value and what it rests on."""
+        return (f"pincushion {self.distortion_mm:.2f} mm at 100 mm from the centre, from {self.beads} beads on a "
+                f"{self.grid_step_mm:.2f} mm grid; fit rms {self.rms_mm:.3f} mm ({self.rms_pinhole_mm:.3f} mm "
+                "without it)")
+
 
 def find_beads(pixels: np.ndarray, bead_px: float) -> np.ndarray:
     """(n, 2) bead centroids (column, row) px: extremes of a difference of Gaussians (module docstring, 1)."""

@@ -100,7 +100,7 @@ def test_the_pincushion_is_measured_on_a_bead_grid_x_ray_and_set(window, tmp_pat
     window.dialogs.answers["open_file"] = [str(png)]
     window.geometry_panel.measure_button.click()
     title, message, _ = window.dialogs.messages[-1]
-    assert title == "Pincushion measured" and message.startswith("3.00 mm at 100 mm from the centre")
+    assert title == "Pincushion measured" and message.startswith("Pincushion 3.00 mm at 100 mm from the centre")
     assert window.xray.intrinsics.distortion_mm == 3.0 and window.geometry_panel.distortion.value() == 3.0
     window.dialogs.answers["open_file"] = [str(tmp_path / "missing.png")]
     window.geometry_panel.measure_button.click()
