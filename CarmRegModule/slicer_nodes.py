@@ -135,23 +135,20 @@ def xray_from_node(xray_node, sdd_mm=0.0, pixel_spacing_mm=0.0, sod_mm=0.0, dist
 
 
 def measure_distortion(parameter_node):
-    """The pincushion measured on the parameter node's bead-grid X-ray ("GridXray", ``image.grid_calibration``) and
-    set as its ``DistortionMm``; returns the ``GridCalibration``. The grid's pixel spacing: the panel's, else its
-    file's or volume's (``xray_from_node``); its principal point: the X-ray's when one is selected and the grid
-    image has its size, else the grid image's centre. Raises CarmReg's errors (one clear line)."""
-    from carmreg.logic.image.grid_calibration import calibrate
+    """The pincushion measured on the parameter node's bead-grid X-ray ("GridXray",
+    ``grid_calibration.calibrate_for_detector``) and set as its ``DistortionMm``; returns the ``GridCalibration``.
+    The grid's pixel spacing: the panel's, else its file's or volume's (``xray_from_node``); its principal point:
+    the selected X-ray's when the grid image has its size. Raises CarmReg's errors (one clear line)."""
+    from carmreg.logic.image.grid_calibration import calibrate_for_detector
 
     grid_node = parameter_node.GetNodeReference("GridXray")
     if grid_node is None:
         raise ValueError("CarmReg: select the bead-grid X-ray (C-arm geometry) before measuring its pincushion")
     _, spacing_mm, _, _, _, _ = parameters_from_node(parameter_node)
     grid = xray_from_node(grid_node, pixel_spacing_mm=spacing_mm)
-    centre = None
     xray_node = parameter_node.GetNodeReference("Xray")
-    if xray_node is not None:
-        xray = xray_from_node(xray_node, pixel_spacing_mm=spacing_mm)
-        centre = xray.intrinsics.principal_point_px if xray.size_px == grid.size_px else None
-    calibration = calibrate(grid.pixels, grid.intrinsics.pixel_spacing_mm, centre)
+    detector = xray_from_node(xray_node, pixel_spacing_mm=spacing_mm).intrinsics if xray_node is not None else None
+    calibration = calibrate_for_detector(grid.pixels, grid.intrinsics.pixel_spacing_mm, detector, grid.source)
     parameter_node.SetParameter("DistortionMm", f"{round(calibration.distortion_mm, 2):g}")
     return calibration
 

@@ -107,20 +107,16 @@ class WindowData:
         self.set_xray_image(xray, None, overrides)
 
     def measure_distortion(self, path: str | Path):
-        """The pincushion measured on a bead-grid X-ray of this C-arm (``image.grid_calibration``), set as the
-        X-ray's ``distortion_mm`` override; the grid image's own pixel spacing, else the X-ray's (same size)."""
-        from carmreg.logic.image.grid_calibration import calibrate
+        """The pincushion measured on a bead-grid X-ray of this C-arm (``grid_calibration.calibrate_for_detector``:
+        the grid image's own pixel spacing, else the X-ray's), set as the X-ray's ``distortion_mm`` override."""
+        from carmreg.logic.image.grid_calibration import calibrate_for_detector
         from carmreg.logic.io.xray import load_xray
 
         if self.xray is None or self.xray.intrinsics is None:
             raise InputFileError("load the X-ray and complete its geometry before measuring its pincushion")
         grid = load_xray(path)
-        spacing = grid.intrinsics.pixel_spacing_mm if grid.intrinsics is not None else None
-        if spacing is None and grid.size_px != self.xray.size_px:
-            raise InputFileError(f"{path}: the grid image ({grid.size_px[0]} x {grid.size_px[1]} px) is not the "
-                                 "X-ray's size and states no pixel spacing; export it as the X-rays are")
-        cal = calibrate(grid.pixels, spacing or self.xray.intrinsics.pixel_spacing_mm,
-                        self.xray.intrinsics.principal_point_px)
+        cal = calibrate_for_detector(grid.pixels, grid.intrinsics.pixel_spacing_mm if grid.intrinsics else None,
+                                     self.xray.intrinsics, str(path))
         self.geometry_panel.set_value("distortion_mm", round(cal.distortion_mm, 2))
         return cal
 

@@ -28,8 +28,8 @@ import numpy as np
 from scipy import ndimage, optimize
 from scipy.spatial import cKDTree
 
-from carmreg.logic.errors import RegistrationError
-from carmreg.logic.geometry.camera import MAX_DISTORTION_MM
+from carmreg.logic.errors import InputFileError, RegistrationError
+from carmreg.logic.geometry.camera import MAX_DISTORTION_MM, CarmIntrinsics
 from carmreg.logic.geometry.distortion import RadialDistortion
 from carmreg.logic.image.field import field_mask
 
@@ -143,6 +143,22 @@ def _residual_mm(shift_mm: float, beads_px, indices, centre_px, spacing_mm) -> n
     design = np.column_stack([indices, np.ones(len(indices))])
     coef, *_ = np.linalg.lstsq(design, ideal, rcond=None)
     return np.linalg.norm(design @ coef - ideal, axis=1)
+
+
+def calibrate_for_detector(pixels: np.ndarray, grid_spacing_mm, detector: CarmIntrinsics | None,
+                           source: str = "the grid image") -> GridCalibration:
+    """``calibrate`` a bead-grid X-ray taken on the C-arm whose X-ray has the intrinsics ``detector`` (None: no X-ray
+    yet): the grid's own pixel spacing ``grid_spacing_mm`` (column, row) when known, else the X-ray's when the
+    grid image has its size; the X-ray's principal point when the grid image has its size, else the grid image's
+    centre. InputFileError when no spacing can be taken."""
+    rows, cols = np.asarray(pixels).shape
+    same_detector = detector is not None and tuple(detector.size_px) == (cols, rows)
+    spacing = grid_spacing_mm if grid_spacing_mm is not None else (
+        detector.pixel_spacing_mm if same_detector else None)
+    if spacing is None:
+        raise InputFileError(f"{source}: the grid image ({cols} x {rows} px) states no pixel spacing and is not the "
+                             "X-ray's size; export it as the X-rays are, or give its pixel spacing")
+    return calibrate(pixels, spacing, detector.principal_point_px if same_detector else None)
 
 
 def calibrate(pixels: np.ndarray, pixel_spacing_mm, centre_px=None, bead_mm: float = 2.0) -> GridCalibration:

@@ -7,8 +7,9 @@ import pytest
 from grid_images import PIXEL_MM, STEP_MM, grid_image
 
 from carmreg.cli import main
-from carmreg.logic.errors import RegistrationError
-from carmreg.logic.image.grid_calibration import calibrate
+from carmreg.logic.errors import InputFileError, RegistrationError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.image.grid_calibration import calibrate, calibrate_for_detector
 from carmreg.logic.io.xray import write_png16
 
 
@@ -52,3 +53,17 @@ def test_the_command_prints_the_value_to_give_and_refuses_in_one_line(tmp_path, 
     assert main(["calibrate-distortion", "--image", str(png)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the detector pixel spacing is not in the file; give --pixel-spacing-mm" in err
+
+
+def test_a_grid_image_takes_the_x_rays_spacing_and_centre_only_when_it_has_the_x_rays_size():
+    """``calibrate_for_detector``: a grid image without its own pixel spacing and of the X-ray's size is measured
+    with the X-ray's spacing and principal point; of another size, it is refused in one line."""
+    grid = grid_image(3.0)
+    xray = CarmIntrinsics(1000.0, (PIXEL_MM, PIXEL_MM), grid.shape[::-1])
+    assert calibrate_for_detector(grid, None, xray).distortion_mm == pytest.approx(3.0, abs=0.03)
+    moved = CarmIntrinsics(1000.0, (PIXEL_MM, PIXEL_MM), grid.shape[::-1], (420.0, 360.0))
+    assert calibrate_for_detector(grid, None, moved).distortion_mm != pytest.approx(3.0, abs=0.03)
+    other = CarmIntrinsics(1000.0, (PIXEL_MM, PIXEL_MM), (grid.shape[1] + 10, grid.shape[0]))
+    with pytest.raises(InputFileError, match="grid.png: the grid image .* states no pixel spacing"):
+        calibrate_for_detector(grid, None, other, "grid.png")
+    assert calibrate_for_detector(grid, (PIXEL_MM, PIXEL_MM), other).distortion_mm == pytest.approx(3.0, abs=0.03)
