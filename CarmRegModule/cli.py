@@ -308,8 +308,10 @@ def cmd_demo(args) -> int:
             right = assigned == list(true_clicked)
             print(f"clicks named {', '.join(assigned)}; the sample's true names are {', '.join(true_clicked)}: "
                   f"{'right' if right else 'WRONG'}")
-        print("against the simulation's ground truth (levels not clicked): " + ", ".join(
-            f"{r['label']} {r['pde_pose_mm']:.1f} mm" for r in score["levels"] if not r["fitted"]))
+        print("against the simulation's ground truth, levels not clicked (from the true pose's projection / from "
+              "where the X-ray shows the vertebra): " + ", ".join(
+                  f"{r['label']} {r['pde_pose_mm']:.1f} / {r['pde_image_mm']:.1f} mm"
+                  for r in score["levels"] if not r["fitted"]))
         print(f"every visible level named correctly: {'yes' if score['all_named_correctly'] else 'NO'}")
     return EXIT_OK if result.ok else EXIT_CHECKS_FAILED
 

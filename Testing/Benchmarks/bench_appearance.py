@@ -20,8 +20,10 @@ Halves: even case index = "tune" (for choosing thresholds), odd = "report" (the 
 labels are right when: unnamed, the assigned labels are the true ones; named / wrong, the names given are
 (always / never); none, every visible level is named correctly by the found pose. Pose-PDE: every visible level
 not clicked, CT centroid projected with the found and the true P (mirrored display: the true P flipped), mm on the
-detector. Polarity: ``result.json["appearance"]["polarity"]`` when present, else what the reader assumed
-(``load_xray(...).bone_dark``, marked "assumed").
+detector. Image-PDE: the same levels' CT centroids projected with the found P against where each vertebra shows in
+the X-ray (after its per-level motion and the intensifier's pincushion), and the true P's the same way. Polarity:
+``result.json["appearance"]["polarity"]`` when present, else what the reader assumed (``load_xray(...).bone_dark``,
+marked "assumed").
 """
 
 from __future__ import annotations
@@ -212,8 +214,10 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
     P = np.asarray(result["projection_matrix"], float)
     clicked = set(truth["clicked"]) if mode != "none" else set()
     ev = evaluate(P, centroids, truth, clicked)
-    row.update(unfitted_pde_mm=ev["unfitted_pde_pose_mm"], all_named_correctly=ev["all_named_correctly"],
-               offset=level_offset(P, centroids, truth))
+    shown = evaluate(np.asarray(truth["projection_matrix"], float), centroids, truth, clicked)
+    row.update(unfitted_pde_mm=ev["unfitted_pde_pose_mm"], unfitted_image_mm=ev["unfitted_pde_image_mm"],
+               unfitted_true_pose_image_mm=shown["unfitted_pde_image_mm"],
+               all_named_correctly=ev["all_named_correctly"], offset=level_offset(P, centroids, truth))
     row["winner_right"] = row["winner"] == truth["clicked"] if mode != "none" else ev["all_named_correctly"]
     if mode == "unnamed":
         row["answer_right"] = row["assigned"] == truth["clicked"]
@@ -307,6 +311,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         if len(vals):
             lines.append(f"| {v} | {len(vals)} | {np.median(vals):.2f} | {_pct(vals, 95)} | {vals.max():.2f} | "
                          f"{np.mean(vals < 5) * 100:.0f} % |")
+    lines += _image_pde_table(sel, variants)
     secs = [r["seconds"] for r in sel if _timed(r)]
     if secs:
         built = sum(r.get("db_from_cache") is False for r in sel)
@@ -314,6 +319,27 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                   f"built a database left out): median {np.median(secs):.1f} s, max {max(secs):.1f} s over "
                   f"{len(secs)} runs, on a machine shared with other work."]
     return "\n".join(lines) + "\n"
+
+
+def _image_pde_table(sel: list[dict], variants: list[str]) -> list[str]:
+    """Levels not clicked, where the X-ray shows them: |P_found X - uv_true| against |P_true X - uv_true| (the
+    vertebra's image position after per-level motion and the pincushion; ``evaluate``'s ``pde_image_mm``). On an
+    uncalibrated intensifier a pinhole pose that absorbs the pincushion is off the true pose (pose-PDE) yet may
+    draw the names closer to the vertebrae than the true pose would; the second pair is that floor."""
+    lines = ["", "Levels not clicked, where the X-ray shows them (image-PDE, detector mm: the level's name as drawn "
+             "against where its moved vertebra shows, pincushion included), modes unnamed + named; the true pose "
+             "drawn the same way (per-level motion and the pincushion alone).", "",
+             "| variant | levels | found pose: median | 95th pct | true pose: median | 95th pct |",
+             "|---|---|---|---|---|---|"]
+    for v in variants + ["**all**"]:
+        runs = [r for r in sel if (r["variant"] == v or v == "**all**") and r["mode"] in ("unnamed", "named")
+                and r.get("unfitted_image_mm")]
+        found = np.concatenate([r["unfitted_image_mm"] for r in runs] or [[]])
+        true = np.concatenate([r["unfitted_true_pose_image_mm"] for r in runs] or [[]])
+        if len(found):
+            lines.append(f"| {v} | {len(found)} | {np.median(found):.2f} | {_pct(found, 95)} | "
+                         f"{np.median(true):.2f} | {_pct(true, 95)} |")
+    return lines
 
 
 def _timed(r: dict) -> bool:
