@@ -61,8 +61,11 @@ def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: 
     from .main_window import CarmRegWidget
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from .qt_signals import quit_window_on_signals
+
     app = ensure_app(offscreen=False)
     window = CarmRegWidget()
+    quit_window_on_signals(app, window)
     window.show()
     process_events()
     if not any((ct, xray, ct_landmarks, xray_landmarks, sample, session)):
@@ -70,6 +73,8 @@ def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: 
     if session:
         _load_steps(window, [(f"session {session}", lambda: window.open_session(session))])
     _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample)
+    if window.quit_code is not None:  # a termination signal while loading (``qt_signals``)
+        return window.quit_code
     return int(app.exec())
 
 

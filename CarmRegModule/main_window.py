@@ -65,6 +65,7 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         self.geometry_overrides: dict = {}
         self.result = None
         self.result_stale = False
+        self.quit_code: int | None = None  # set by a termination signal (``close_for_signal``)
         self.last_result_summary: dict | None = None
         self.session_path: str | None = None
         self._dirty = False

@@ -225,6 +225,33 @@ class WindowSession:
             v3.close_plotter()
         event.accept()
 
+    def close_for_signal(self, signum: int) -> None:
+        """Quit at once on a termination signal (``qt_signals``), asking nothing: a running registration is
+        cancelled, unsaved work is written to the autosave (kept: the next start offers to recover it), and the
+        application's event loops end with exit code 128 + ``signum`` (``quit_code``, for a signal that lands
+        before the main loop runs)."""
+        self.quit_code = 128 + int(signum)
+        if self.is_running():
+            self.cancel_registration()
+            self.wait_for_registration(30)
+        self._autosave_timer.stop()
+        if self._dirty:
+            self.autosave_now()
+        elif self.autosave_enabled:  # nothing unsaved: no recovery to offer next time (as a clean close)
+            session_io.clear_autosave(folder=self.state_folder)
+        for v3 in (self.view3d, self.view3d_result):
+            v3.close_plotter()
+        self.hide()
+        self._end_application(self.quit_code)
+
+    @staticmethod
+    def _end_application(code: int) -> None:
+        """Every running event loop of the application ends, ``app.exec()`` returning ``code`` (and any later
+        event loop in this process returns at once: Qt's ``QCoreApplication.exit``)."""
+        from qtpy import QtWidgets
+
+        QtWidgets.QApplication.instance().exit(code)
+
     def discard_and_close(self) -> None:
         """Close without asking and without keeping an autosave (scripts, screenshots, tests)."""
         if self.is_running():

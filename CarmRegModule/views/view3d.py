@@ -190,7 +190,9 @@ class View3D(QtWidgets.QWidget):
         if self.mode == "interactive":
             try:
                 from pyvistaqt import QtInteractor
-                self._plotter = QtInteractor(self.stack)
+                # auto_update=False: pyvistaqt's default re-renders 5 times a second forever (an idle window
+                # then holds a core busy); this view renders when its content or the camera changes
+                self._plotter = QtInteractor(self.stack, auto_update=False)
                 self.stack.addWidget(self._plotter.interactor)
                 self.stack.setCurrentWidget(self._plotter.interactor)
             except Exception as exc:  # noqa: BLE001 - no OpenGL: fall back, keep the app running
