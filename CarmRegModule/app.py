@@ -50,12 +50,13 @@ def check_display() -> None:
 
 
 def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: bool = False,
-            session=None) -> int:
+            session=None, geometry: dict | None = None) -> int:
     """Open the CarmReg window, optionally with data; returns the application's exit code.
 
     ct / xray: paths of a CT (DICOM folder, NIfTI, NRRD, MetaImage) and an X-ray (DICOM, PNG, TIFF);
     ct_landmarks / xray_landmarks: .mrk.json (or plain JSON) centroids; sample: load the embedded sample case;
-    session: a saved session file (data, points and the last result).
+    session: a saved session file (data, points and the last result); geometry: the X-ray's geometry
+    overrides ({"sdd_mm": mm, "pixel_spacing_mm": (column, row) mm}) for a file that does not give it.
     Errors in these inputs are shown as dialogs; the window stays open. Call ``check_display`` first.
     """
     from .main_window import CarmRegWidget
@@ -72,20 +73,21 @@ def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: 
         window.offer_recovery()
     if session:
         _load_steps(window, [(f"session {session}", lambda: window.open_session(session))])
-    _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample)
+    _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample, geometry)
     if window.quit_code is not None:  # a termination signal while loading (``qt_signals``)
         return window.quit_code
     return int(app.exec())
 
 
-def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool) -> None:
+def _load_inputs(window, ct, xray, ct_landmarks, xray_landmarks, sample: bool, geometry: dict | None = None
+                 ) -> None:
     steps = []
     if sample:
         steps.append(("sample case", window.load_sample_case))
     if ct:
         steps.append((f"CT {ct}", lambda: window.load_ct(ct)))
     if xray:
-        steps.append((f"X-ray {xray}", lambda: window.load_xray(xray)))
+        steps.append((f"X-ray {xray}", lambda: window.load_xray(xray, dict(geometry or {}))))
     if ct_landmarks:
         steps.append((f"CT landmarks {ct_landmarks}", lambda: window.import_ct_landmarks(ct_landmarks, False)))
     if xray_landmarks:
@@ -111,16 +113,17 @@ def _load_steps(window, steps) -> None:
 
 def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, register: bool = True,
                        size=(1600, 1000), parameters: dict | None = None, inputs: dict | None = None,
-                       session=None) -> list[Path]:
+                       session=None, notes: list | None = None) -> list[Path]:
     """Headless PNG screenshots of the window and its views; returns the written paths.
 
     views: any of "window" (the state after loading/registering), "window_data", "window_ct", "window_xray",
     "window_register", "window_check" (the whole window at that workflow step), "axial", "coronal",
     "sagittal", "ct" (the four CT views), "xray", "overlay", "3d", "result" (overlay + 3D with the C-arm).
-    sample: load the embedded sample case first; inputs: {"ct", "xray", "ct_landmarks", "xray_landmarks": path}
-    to load instead; session: a session file to open instead; register: run the registration when a view needs
-    it (and the data allow it); parameters: RegistrationParameters fields to override (e.g. a smaller search
-    range).
+    sample: load the embedded sample case first; inputs: {"ct", "xray", "ct_landmarks", "xray_landmarks": path,
+    "geometry": the X-ray's geometry overrides} to load instead; session: a session file to open instead;
+    register: run the registration when a view needs it (and the data allow it); parameters:
+    RegistrationParameters fields to override (e.g. a smaller search range); notes: a list that receives, in
+    words, why the views show no result when one was asked for.
     Files are named ``carmreg_<view>.png``. Raises CarmRegError on bad arguments or a failed load.
     """
     from .main_window import SCREENSHOT_VIEWS, CarmRegWidget
@@ -143,7 +146,7 @@ def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, regist
             window.open_session(session)
         elif inputs:
             _load_inputs(window, inputs.get("ct"), inputs.get("xray"), inputs.get("ct_landmarks"),
-                         inputs.get("xray_landmarks"), False)
+                         inputs.get("xray_landmarks"), False, inputs.get("geometry"))
             failed = [m for m in dialogs.messages]
             if failed:
                 raise InputFileError(failed[0][1])
@@ -153,11 +156,14 @@ def export_screenshots(out_dir, sample: bool = True, views=DEFAULT_VIEWS, regist
         _focus_first_point(window)
         wants_result = any(v in ("window", "window_register", "window_check", "overlay", "result") for v in views)
         loaded = sample or inputs or session
-        if loaded and register and wants_result and window.registration_panel.run_button.isEnabled():
+        said = notes if notes is not None else []
+        if loaded and register and wants_result and not window.registration_panel.run_button.isEnabled():
+            said.append(f"not registered, the views show no result: {window.registration_panel.ready_label.text()}")
+        elif loaded and register and wants_result:
             window.run_registration(wait=True)
             errors = [m for m in dialogs.messages if "error" in m[0].lower() or "registration" in m[0].lower()]
             if errors:
-                LOG.warning("registration for screenshots failed: %s", errors[-1][1])
+                said.append(f"the registration failed, the views show no result: {errors[-1][1]}")
         paths = []
         for view in views:
             path = out / f"carmreg_{view}.png"

@@ -147,6 +147,17 @@ def _window_inputs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--xray", help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
     p.add_argument("--ct-landmarks", metavar="FILE", help="CT centroids (.mrk.json or JSON), named by level")
     p.add_argument("--xray-landmarks", metavar="FILE", help="X-ray clicks (.mrk.json or JSON), named or not")
+    p.add_argument("--sdd-mm", type=float, help="the X-ray's source-to-detector distance, when its file does not "
+                   "give it (PNG, TIFF, JPEG)")
+    p.add_argument("--pixel-spacing-mm", type=float, nargs="+", metavar="MM",
+                   help="the X-ray's detector pixel spacing: one value, or column then row")
+
+
+def _window_geometry(args) -> dict:
+    """The X-ray geometry given with ``--sdd-mm`` / ``--pixel-spacing-mm``, as the window's overrides."""
+    spacing = _spacing(args.pixel_spacing_mm)
+    geometry = {"sdd_mm": args.sdd_mm, "pixel_spacing_mm": spacing}
+    return {k: v for k, v in geometry.items() if v is not None}
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
@@ -397,6 +408,8 @@ def _check_window_inputs(args) -> None:
         value = getattr(args, flag)
         if value and not Path(value).exists():
             raise CarmRegError(f"--{flag.replace('_', '-')} {value}: no such file or folder")
+    if _window_geometry(args) and not args.xray:
+        raise CarmRegError("--sdd-mm and --pixel-spacing-mm describe the X-ray given with --xray: give it too")
     if args.session:
         from carmreg.logic.io.session import load_session
 
@@ -420,7 +433,8 @@ def cmd_gui(args) -> int:
     app = _gui_module()
     app.check_display()  # no display, or Qt cannot open a window: one line, exit 2, nothing left behind
     return app.run_gui(ct=args.ct, xray=args.xray, ct_landmarks=args.ct_landmarks,
-                       xray_landmarks=args.xray_landmarks, sample=args.sample, session=args.session)
+                       xray_landmarks=args.xray_landmarks, sample=args.sample, session=args.session,
+                       geometry=_window_geometry(args))
 
 
 def cmd_screenshot(args) -> int:
@@ -429,9 +443,14 @@ def cmd_screenshot(args) -> int:
     inputs = {k: getattr(args, k) for k in ("ct", "xray", "ct_landmarks", "xray_landmarks") if getattr(args, k)}
     sample = args.sample or not (inputs or args.session)
     views = tuple(args.views) if args.views else app.DEFAULT_VIEWS
+    notes: list[str] = []
     for path in app.export_screenshots(args.out, sample=sample, views=views, register=not args.no_register,
-                                       size=tuple(args.size), inputs=inputs, session=args.session):
+                                       size=tuple(args.size),
+                                       inputs=dict(inputs, geometry=_window_geometry(args)) if inputs else {},
+                                       session=args.session, notes=notes):
         print(f"wrote {path}")
+    for note in notes:
+        print(f"warning: {note}", file=sys.stderr)
     return EXIT_OK
 
 

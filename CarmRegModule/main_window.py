@@ -340,12 +340,23 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         if self._accepting_names:
             pass  # the clicks now carry the names this result assigned: it still describes them
         elif self.result is not None and not self.result_stale:
-            self.result_stale = True
-            self.overlay_view.summary = "inputs changed since this result: register again"
-            self.overlay_view.viewport().update()
-            self.clear_assigned_names()  # the assigned names describe clicks that have changed
+            self.mark_result_stale("inputs changed since this result")
         self._update_readiness()
         self._mark_dirty()
+
+    def mark_result_stale(self, why: str) -> None:
+        """The result shown no longer describes the inputs: both banners turn grey and say so (``stale_banner``;
+        its answer, green or amber, is no longer shown as an answer), the overlay's header line says why, and
+        the names it assigned to the clicks are withdrawn."""
+        from carmreg.logic.report.style import stale_banner
+
+        self.result_stale = True
+        banner = stale_banner(why)
+        self.overlay_view.summary = f"{why}: register again"
+        self.overlay_view.banner = banner
+        self.overlay_view.viewport().update()
+        self.result_panel.set_stale(banner)
+        self.clear_assigned_names()
 
     def _update_readiness(self) -> None:
         """The Register button and the ready line, from the logic's rules (``registration.preflight``)."""

@@ -281,7 +281,7 @@ def result_summary(result):
     the answer withholds the names)."""
     from carmreg.logic.report.style import level_banner, names_shown
 
-    lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.warnings)]
+    lines = ["OK" if result.ok else "CHECKS FAILED: " + "; ".join(result.failed_checks)]
     banner = level_banner(result.level_check)
     if banner:
         lines.append(banner[0])

@@ -63,7 +63,11 @@ class WindowData:
         self.set_xray_image(xray, str(path), overrides)
 
     def set_xray_image(self, xray, path: str | None = None, overrides: dict | None = None) -> None:
+        """Show ``xray`` (read from ``path``) with its geometry. Another X-ray file than the one shown takes the
+        clicks of the previous image away (``_drop_clicks_of_previous_xray``)."""
         first = self.xray is None or self.xray_path != path
+        if self.xray is not None and path is not None and path != self.xray_path:
+            self._drop_clicks_of_previous_xray()
         self.xray, self.xray_path = xray, path
         self.geometry_overrides = dict(overrides or {})
         if first or xray is None:
@@ -82,6 +86,15 @@ class WindowData:
         else:
             self.xray_info.setText("No X-ray loaded")
         self._inputs_changed()
+
+    def _drop_clicks_of_previous_xray(self) -> None:
+        """Clicks placed on one X-ray are not the vertebrae of another (even of the same size, where they would
+        otherwise register silently): removed in one undoable step, said in the status bar."""
+        n = len(self.xray_store)
+        if n:
+            self.xray_store.replace_all([], [], text="Remove the previous X-ray's points")
+            self.statusBar().showMessage(f"Another X-ray: the {n} point(s) placed on the previous image were removed "
+                                         "(Edit > Undo brings them back)", 15000)
 
     def apply_geometry(self, overrides: dict) -> None:
         """Re-read the X-ray with new geometry overrides (the logic decides and records the sources)."""

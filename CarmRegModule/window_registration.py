@@ -159,10 +159,7 @@ class WindowRegistration:
         if result is not None:
             self.set_result(result)
             if not current:  # the user edited while it ran: show it, but say it is out of date
-                self.result_stale = True
-                self.overlay_view.summary = "inputs changed during the run: register again"
-                self.overlay_view.viewport().update()
-                self.clear_assigned_names()
+                self.mark_result_stale("inputs changed during the run")
         else:
             self.registration_panel.set_running(False)
 
@@ -220,7 +217,7 @@ class WindowRegistration:
         summary = (f"mPDE {drawn:.2f} mm   " if drawn is not None else "") + \
             f"magnification {result.magnification:.2f}"
         check = getattr(result, "level_check", None)
-        banner = answer_banner(check, bool(result.ok), list(result.warnings))
+        banner = answer_banner(check, bool(result.ok), list(getattr(result, "failed_checks", [])))
         appearance = getattr(result, "appearance", None)
         bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,

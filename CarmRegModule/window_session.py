@@ -102,13 +102,14 @@ class WindowSession:
                   for st in summary.get("stages") or []]
         levels = [{"in_image": True, "clicked_uv_px": None, "name_margin": None, **lv}
                   for lv in summary.get("levels") or []]
-        result = SavedResult(pose, P, geometry, stages, levels, bool(summary.get("ok")),
-                             list(summary.get("warnings") or []), LevelCheck.from_dict(summary.get("level_check")))
+        warnings = list(summary.get("warnings") or [])
+        failed = summary.get("failed_checks")  # a session saved before it was recorded: every warning, as then
+        result = SavedResult(pose, P, geometry, stages, levels, bool(summary.get("ok")), warnings,
+                             LevelCheck.from_dict(summary.get("level_check")),
+                             list(warnings if failed is None and not summary.get("ok") else failed or []))
         self.set_result(result)
         if summary.get("stale"):
-            self.result_stale = True
-            self.overlay_view.summary = "inputs changed since this result: register again"
-            self.clear_assigned_names()
+            self.mark_result_stale("inputs changed since this result")
         self.statusBar().showMessage("The session's last result is shown (without the DRR): register again to "
                                      "recompute it", 8000)
         return True
@@ -284,6 +285,7 @@ class SavedResult:
     ok: bool
     warnings: list
     level_check: LevelCheck | None
+    failed_checks: list = field(default_factory=list)
     drr_line_integral: None = None
     convergence: list = field(default_factory=list)
     restored: bool = True

@@ -300,7 +300,8 @@ def test_a_refused_images_projected_levels_in_slicer_carry_a_question_mark(mrml,
     check = LevelCheck("unnamed", "ambiguous", assigned_labels=["T11", "T12"]).withheld_for("display mirrored")
     levels = [{"label": lb, "uv_px": [10.0 * i, 20.0], "fitted": i < 2, "pde_mm": 1.0 if i < 2 else None}
               for i, lb in enumerate(["T11", "T12", "L1"])]
-    result = SimpleNamespace(levels=levels, level_check=check, ok=False, warnings=["display mirrored"], stages=[])
+    result = SimpleNamespace(levels=levels, level_check=check, ok=False, warnings=["display mirrored"],
+                             failed_checks=["display mirrored"], stages=[])
     markups = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "refused")
     nodes.set_projected_levels(markups, result, sample_nodes["xray"])
     assert [markups.GetNthControlPointLabel(i) for i in range(3)] == ["T11?", "T12?", "L1?"]

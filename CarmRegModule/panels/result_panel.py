@@ -316,6 +316,17 @@ class ResultPanel(QtWidgets.QWidget):
         self.banner.setToolTip(reason)
         self.banner.setVisible(True)
 
+    def set_stale(self, banner: tuple[str, str, str]) -> None:
+        """The result shown no longer describes the inputs: the grey ``banner`` (``stale_banner``) and the level
+        status greyed, "out of date" beside it."""
+        from carmreg.logic.report.style import status_ink
+
+        self.set_banner(banner)
+        status = self.level_status_label.text()
+        if status not in ("", "-") and not status.endswith("(OUT OF DATE)"):
+            self.level_status_label.setText(f"{status} (OUT OF DATE)")
+        self.level_status_label.setStyleSheet(f"color: {status_ink(None)}; font-weight: bold;")
+
     def set_appearance(self, appearance) -> None:
         """Show ``result.appearance`` (polarity, how clearly, storage, orientation) or '-'."""
         if appearance is None:
@@ -331,7 +342,8 @@ class ResultPanel(QtWidgets.QWidget):
         if has:
             from carmreg.logic.report.style import answer_banner
 
-            self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok), result.warnings))
+            self.set_banner(answer_banner(getattr(result, "level_check", None), bool(result.ok),
+                                          list(getattr(result, "failed_checks", []))))
         restored = has and getattr(result, "restored", False)
         for button in (self.export_button, self.report_button):
             button.setEnabled(has and not restored)

@@ -246,8 +246,8 @@ class View3D(QtWidgets.QWidget):
         self.refresh(reset_camera=True)
 
     def refresh(self, reset_camera: bool = False) -> None:
-        if self.mode == "message":
-            return
+        if self.mode == "message" or (self.mode == "interactive" and self._plotter is None):
+            return  # no 3D, or its plotter closed with the window (``close_plotter``)
         try:
             plotter = self._plotter if self.mode == "interactive" else self._offscreen_plotter()
             camera = None if reset_camera else plotter.camera_position

@@ -61,6 +61,11 @@ def load_dicom_file(path: str | Path, *, series_uid: str | None = None) -> Volum
         raise InputFileError(f"{path}: not a readable DICOM file")
     if dicom_int(ds, "NumberOfFrames", 1, path) > 1:
         return load_enhanced_ct(path)
+    if "ImagePositionPatient" not in ds or _is_localizer(ds):  # its folder's slices would be searched in vain
+        modality = str(ds.get("Modality", "") or "").strip()
+        raise InputFileError(f"{path}: a DICOM {modality + ' ' if modality else ''}image without a slice position "
+                             "(a projection X-ray or a localizer, not a CT slice); give the CT's series folder or a "
+                             "NIfTI/NRRD/MetaImage volume (the X-ray goes to --xray)")
     return load_dicom_series(path.parent, series_uid=series_uid or str(ds.get("SeriesInstanceUID", "")))
 
 

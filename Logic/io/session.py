@@ -209,6 +209,7 @@ def summarize_result(result, out_dir: str | Path | None = None) -> dict:
             "isocenter_lps_mm": to_jsonable(list(geometry.isocenter_lps_mm)) if geometry is not None else None,
             "sod_mm": to_jsonable(geometry.sod_mm) if geometry is not None else None,
             "stages": stages, "levels": levels, "warnings": list(getattr(result, "warnings", [])),
+            "failed_checks": list(getattr(result, "failed_checks", [])),
             "level_check": to_jsonable(getattr(result, "level_check", None)),
             "out_dir": str(out_dir) if out_dir else None}
 

@@ -72,8 +72,8 @@ class XrayImage:
         if "sdd_mm" not in self.sources:
             missing.append("the source-to-detector distance (give --sdd-mm, about 1000 for a C-arm)")
         if "pixel_spacing_mm" not in self.sources:
-            missing.append("the detector pixel spacing (give --pixel-spacing-mm, e.g. 0.3 or 0.3,0.3 as "
-                           "column,row)")
+            missing.append("the detector pixel spacing (give --pixel-spacing-mm, e.g. 0.3, or 0.3 0.3 as "
+                           "column then row)")
         what = " and ".join(missing) or "the C-arm geometry"
         verb = "are" if len(missing) > 1 else "is"
         damaged = self.meta.get("warning_unreadable_elements")

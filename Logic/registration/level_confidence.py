@@ -53,7 +53,7 @@ class Verdict:
     margin: float
     winner: LabellingFit              # the best labelling
     runner_up: LabellingFit | None    # the best other (when the reference is the winner) or the winner
-    reasons: list = field(default_factory=list)   # why a verdict was lowered to ambiguous, in words
+    reasons: list = field(default_factory=list)   # why a verdict is ambiguous (a close margin, failed checks)
     checks: dict = field(default_factory=dict)    # each check's values and pass/fail
 
 
@@ -123,12 +123,25 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
     return checks, reasons
 
 
+def margin_reason(d: float, e: Evidence, rule: ConfidenceRule, image_only: bool = False) -> str:
+    """Why a margin under ``rule.margin`` leaves the answer ambiguous, in words (``image_only``: the labellings
+    are poses named by the level at the image centre)."""
+    if image_only:
+        return (f"a pose with {', '.join(e.rival_labels)} at the image centre fits the image about as well as the "
+                f"best, with {', '.join(e.winner_labels)} (margin {d:+.3f}, under {rule.margin:.2f})")
+    return (f"the image fits {', '.join(e.winner_labels)} and {', '.join(e.rival_labels)} about equally (margin "
+            f"{d:+.3f}, under {rule.margin:.2f})")
+
+
 def judge(d: float, e: Evidence, rule: ConfidenceRule) -> tuple[str, list[str], dict]:
     """(status, reasons, checks) from the margin ``d`` of the reference labelling (the surgeon's names, or the
-    best labelling) over the best other, and the evidence: steps 2 and 3 of the module docstring."""
+    best labelling) over the best other, and the evidence: steps 2 and 3 of the module docstring. The reasons
+    of an ambiguous verdict: the margin when it decides (``margin_reason``), and every failed check."""
     status = "confident" if d >= rule.margin else ("ambiguous" if d > -rule.margin else "contradicted")
     checks, reasons = check_results(e, rule)
-    if status != "ambiguous" and reasons:
+    if status == "ambiguous":
+        return status, [margin_reason(d, e, rule)] + reasons, checks
+    if reasons:
         return "ambiguous", reasons, checks
     return status, [], checks
 
@@ -155,7 +168,8 @@ def decide_image_only(ranked: list[LabellingFit], rule: ConfidenceRule, *, appea
     winner = ranked[0]
     runner_up = ranked[1] if len(ranked) > 1 else None
     d = float(runner_up.score - winner.score) if runner_up is not None else float("inf")
-    checks, reasons = check_results(Evidence.of(winner, runner_up, True, appearance_clear), rule, landmarks=False)
+    evidence = Evidence.of(winner, runner_up, True, appearance_clear)
+    checks, reasons = check_results(evidence, rule, landmarks=False)
     if d < rule.margin:
-        return Verdict("ambiguous", d, winner, runner_up, [], checks)
+        return Verdict("ambiguous", d, winner, runner_up, [margin_reason(d, evidence, rule, True)] + reasons, checks)
     return Verdict("ambiguous" if reasons else "proposed", d, winner, runner_up, reasons, checks)

@@ -132,7 +132,7 @@ def _message(mode: str, verdict: Verdict, chosen: LabellingFit, names: list | No
         return (f"levels {names} PROPOSED from the image alone, without clicks: confirm by clicking the centres "
                 "of at least 3 vertebrae, named or not")
     if verdict.status == "ambiguous":
-        why = "; ".join(verdict.reasons) if verdict.reasons else f"the image fits {alt} about as well as {names}"
+        why = "; ".join(verdict.reasons) or f"the image fits {alt} about as well as {names}"
         return (f"level names AMBIGUOUS: {why}; check another view or name one distinctive level (last rib, "
                 "thoracolumbar or lumbosacral junction)")
     return (f"level names CONTRADICTED: the image fits {alt} better than the names given ({names}); check the "

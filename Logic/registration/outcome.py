@@ -55,7 +55,8 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         similarity_maps=spatial.maps if spatial else {},
         database_grid={"ty_mm": state.database.ty_mm.tolist(), "tz_mm": state.database.tz_mm.tolist()}
         if state.database else {},
-        ok=not problems, warnings=warnings, parameters=state.parameters, level_check=check,
+        ok=not problems, warnings=warnings, failed_checks=list(problems), parameters=state.parameters,
+        level_check=check,
         appearance=state.appearance, field_mask=state.mask,
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                 "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),

@@ -136,12 +136,13 @@ class RegistrationResult:
     similarity_maps: dict
     database_grid: dict
     ok: bool
-    warnings: list
+    warnings: list                  # every message: advisories and the failed checks
     parameters: RegistrationParameters
     inputs: dict = field(default_factory=dict)
     level_check: LevelCheck | None = None  # the level answer (registration.level_check); None: not checked
     appearance: Appearance | None = None  # the X-ray's polarity and storage, and the evidence
     field_mask: np.ndarray | None = None  # (rows, cols) exposed field of the X-ray
+    failed_checks: list = field(default_factory=list)  # the messages that make ``ok`` False (also in warnings)
 
     @property
     def magnification(self) -> float:

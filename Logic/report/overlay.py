@@ -92,7 +92,7 @@ def _draw_banner(ax, banner: tuple[str, str, str], scale: float, rows: int, cols
 
 
 def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = None,
-                   level_check: LevelCheck | None = None, ok: bool = True, warnings: list[str] | tuple = ()
+                   level_check: LevelCheck | None = None, ok: bool = True, failed_checks: list[str] | tuple = ()
                    ) -> np.ndarray:
     """(rows, cols, 3) uint8: the composite ``rgb`` with the levels, the clicks and the level answer's banner
     drawn on it at the image's own size (module docstring)."""
@@ -108,7 +108,7 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
     # one output pixel per image pixel: "nearest" copies them (lanczos gave the same to 1 grey level, 4x slower)
     draw_overlay(ax, rgb, levels, clicked, bool(level_check and level_check.contradicted), scale, "nearest",
                  names_shown(level_check))
-    banner = answer_banner(level_check, ok, list(warnings))
+    banner = answer_banner(level_check, ok, list(failed_checks))
     if banner is not None:
         _draw_banner(ax, banner, scale, rows, cols)
     canvas.draw()
@@ -118,13 +118,13 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
 
 def overlay_image(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | None, levels: list[dict],
                   clicked: dict | None = None, mask: np.ndarray | None = None, level_check: LevelCheck | None = None,
-                  bone_dark: bool | None = None, ok: bool = True, warnings: list[str] | tuple = ()):
+                  bone_dark: bool | None = None, ok: bool = True, failed_checks: list[str] | tuple = ()):
     """The overlay as a PIL RGB image of the X-ray's size: ``screen_composite`` (``bone_dark`` None: the X-ray
     as stored, not flipped) drawn on by ``render_overlay``. ``mask``: the exposed field (default: found)."""
     from PIL import Image
 
     rgb = screen_composite(xray_pixels, drr_line_integral, bool(bone_dark), mask=mask)
-    return Image.fromarray(render_overlay(rgb, levels, clicked, level_check, ok, warnings))
+    return Image.fromarray(render_overlay(rgb, levels, clicked, level_check, ok, failed_checks))
 
 
 def result_bone_dark(result, bone_dark: bool | None = None) -> bool:
@@ -140,4 +140,5 @@ def result_overlay_image(result, xray_pixels: np.ndarray, clicked: dict | None =
     (``result_bone_dark``), level answer and checks."""
     return overlay_image(xray_pixels, result.drr_line_integral, result.levels, clicked,
                          mask=getattr(result, "field_mask", None), level_check=result.level_check,
-                         bone_dark=result_bone_dark(result), ok=bool(result.ok), warnings=list(result.warnings))
+                         bone_dark=result_bone_dark(result), ok=bool(result.ok),
+                         failed_checks=list(getattr(result, "failed_checks", [])))

@@ -144,10 +144,11 @@ def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
     return text
 
 
-def _failed_checks(warnings: list[str], reason: str) -> str:
+def _failed_checks(failed: list[str], reason: str) -> str:
     """"CHECKS FAILED" with the failed checks the banner's reason does not already say (a contradiction's or a
-    refusal's message is both the reason and a warning: said twice, it ran out of the banner)."""
-    rest = [w for w in warnings if w not in reason]
+    refusal's message is both the reason and a failed check: said twice, it ran out of the banner); advisories
+    are not failed checks (they are listed under "Warnings")."""
+    rest = [w for w in failed if w not in reason]
     return "CHECKS FAILED" + (": " + "; ".join(rest) if rest else "")
 
 
@@ -230,7 +231,7 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.add_patch(_box(colour))
     banner.text(0.015, 0.78, headline, fontsize=11.5, fontweight="bold", color="white", va="center",
                 transform=banner.transAxes)
-    paragraphs = [reason] + ([] if doc["ok"] else [_failed_checks(doc["warnings"], reason)])
+    paragraphs = [reason] + ([] if doc["ok"] else [_failed_checks(doc["failed_checks"], reason)])
     explained = margin_detail(check)
     paragraphs += [f"({explained})"] if explained else []  # the least needed: cut first
     size, (text,) = fit_text(["\n".join(p for p in paragraphs if p)], 128, (0.56 - 0.05) * 0.07 * A4_INCHES[1])

@@ -60,6 +60,7 @@ def result_dict(result) -> dict:
     return to_jsonable({
         "ok": bool(result.ok),
         "warnings": list(result.warnings),
+        "failed_checks": list(getattr(result, "failed_checks", [])),
         "projection_matrix": np.asarray(result.projection_matrix, float).tolist(),
         "projection_convention": "homogeneous LPS mm -> homogeneous (column, row) px; 0-based pixel centres",
         "pose": result.pose.as_dict(),

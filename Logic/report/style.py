@@ -128,16 +128,27 @@ def margin_detail(check: LevelCheck | None) -> str:
             f"confident needs {ConfidenceRule().margin:.2f} and the checks of the README's rule")
 
 
-def answer_banner(level_check: LevelCheck | None, ok: bool, warnings: list[str]) -> tuple[str, str, str] | None:
+def answer_banner(level_check: LevelCheck | None, ok: bool, failed_checks: list[str]) -> tuple[str, str, str] | None:
     """(headline, reason, colour) to show above a result: the level answer (without the margin details, which
-    the window lists beside), or "CHECKS FAILED" with the failed checks when the result is not ok for another
-    reason; None when there is nothing to say (level check off and every check passed)."""
+    the window lists beside), or "CHECKS FAILED" with the failed checks (``RegistrationResult.failed_checks``, not
+    the advisories) when the result is not ok for another reason; None when there is nothing to say (level check
+    off and every check passed)."""
     if not level_check and ok:
         return None
     headline, reason, colour = level_answer(level_check, ok, detail=False)
     if not ok and not (level_check and (level_check.contradicted or level_check.withheld)):
-        headline, reason = "CHECKS FAILED - " + headline, "; ".join(warnings)
+        headline, reason = "CHECKS FAILED - " + headline, "; ".join(failed_checks)
     return headline, reason, colour
+
+
+STALE_WORDS = "RESULT OUT OF DATE - REGISTER AGAIN"
+
+
+def stale_banner(why: str) -> tuple[str, str, str]:
+    """(headline, reason, colour) over a result its inputs have moved on from: grey whatever its answer was (a
+    green confirmation must never stay over clicks or an X-ray it did not check)."""
+    return STALE_WORDS, f"{why}: the overlay, level names and pose shown describe the previous inputs", \
+        status_fill(None)
 
 
 MODE_TEXT = {"named": "names as clicked", "partly_named": "partly named clicks", "unnamed": "unnamed clicks",

@@ -250,3 +250,8 @@ def test_real_process_library_warnings_stay_off_stderr(case):
     done = _subprocess([sys.executable, "-m", "carmreg.cli", *register_args(case, xray=damaged)])
     assert_one_line_error(done.returncode, done.stderr, "uid.dcm: the source-to-detector distance")
     assert load_xray(damaged, sdd_mm=1000.0).meta["library_warnings"][0].startswith("Invalid value for VR UI")
+
+
+def test_window_geometry_without_an_xray_is_refused(capsys):
+    code, err = run(capsys, ["gui", "--sample", "--sdd-mm", "1000"])
+    assert_one_line_error(code, err, "--sdd-mm and --pixel-spacing-mm describe the X-ray given with --xray")

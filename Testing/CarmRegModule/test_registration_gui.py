@@ -146,3 +146,23 @@ def test_a_result_computed_while_the_user_edited_is_shown_as_out_of_date(window,
     assert window.result is not None and window.result_stale
     assert "register again" in window.overlay_view.summary
     assert window._reg_state is None  # stages must run again on the edited landmarks
+
+
+def test_another_xray_takes_the_previous_clicks_away_and_greys_the_answer(window, synthetic_case):
+    """Clicks placed on one X-ray are not the vertebrae of another of the same size (they would register
+    silently): loading another file removes them in one undoable step; the answer shown turns grey, out of date."""
+    from carmreg.logic.report.style import STALE_WORDS, status_fill
+
+    _load_case(window, synthetic_case)
+    window.run_registration(wait=True)
+    assert window.result.ok and not window.result_stale
+    window.load_xray(synthetic_case.png_path, {"sdd_mm": 1000.0, "pixel_spacing_mm": (0.9, 0.9)})  # the same size
+    assert len(window.xray_store) == 0
+    assert window.result_stale
+    assert window.overlay_view.banner[0] == STALE_WORDS
+    assert window.result_panel.banner_colour == status_fill(None)
+    assert "previous image were removed" in window.statusBar().currentMessage()
+    window.undo_stack.undo()
+    assert sorted(window.xray_store.labels()) == ["L1", "L2", "T12"]
+    window.load_xray(synthetic_case.png_path, {"sdd_mm": 1000.0, "pixel_spacing_mm": (1.0, 1.0)})  # same file: kept
+    assert len(window.xray_store) == 3

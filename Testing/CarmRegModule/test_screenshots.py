@@ -132,3 +132,26 @@ def test_export_screenshots_headless_writes_window_and_views(qapp, synthetic_cas
     assert ((overlay[..., 1] > 150) & (overlay[..., 0] < 120) & (overlay[..., 2] < 140)).sum() > 30
     with pytest.raises(Exception, match="unknown screenshot view"):
         app.export_screenshots(tmp_path / "x", views=("nonsense",))
+
+
+def test_screenshots_of_a_png_register_with_the_geometry_given_and_say_so_without(qapp, synthetic_case, tmp_path):
+    """A PNG X-ray has no geometry: without it the views show no result and a note says why (the command line
+    prints it as a warning); with ``geometry`` (``--sdd-mm``, ``--pixel-spacing-mm``) they are registered."""
+    from gui_case import FAST_PARAMETERS
+
+    from carmreg import app
+
+    inputs = {"ct": synthetic_case.ct_path, "xray": synthetic_case.png_path,
+              "ct_landmarks": synthetic_case.ct_landmarks_path, "xray_landmarks": synthetic_case.xray_landmarks_path}
+    notes: list = []
+    app.export_screenshots(tmp_path / "bare", views=("overlay",), parameters=FAST_PARAMETERS, inputs=inputs,
+                           notes=notes)
+    assert len(notes) == 1 and notes[0].startswith("not registered, the views show no result: Not ready: the "
+                                                   "X-ray geometry is incomplete")
+    notes.clear()
+    geometry = {"sdd_mm": synthetic_case.sdd_mm, "pixel_spacing_mm": (synthetic_case.pixel_spacing_mm,) * 2}
+    (path,) = app.export_screenshots(tmp_path / "given", views=("overlay",), parameters=FAST_PARAMETERS,
+                                     inputs={**inputs, "geometry": geometry}, notes=notes)
+    overlay = np.asarray(Image.open(path).convert("RGB"))
+    assert notes == []
+    assert ((overlay[..., 1] > 150) & (overlay[..., 0] < 120) & (overlay[..., 2] < 140)).sum() > 30  # fitted

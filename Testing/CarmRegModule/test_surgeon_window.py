@@ -58,7 +58,8 @@ def _named_result(win, names, pdes, status="confident", winner=None, fine_mpde=0
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=stages, levels=levels, drr_line_integral=None, convergence=[],
                            ok=status != "contradicted", warnings=[] if status != "contradicted" else [message],
-                           magnification=1.6, level_check=LevelCheck.from_dict(check))
+                           failed_checks=[] if status != "contradicted" else [message], magnification=1.6,
+                           level_check=LevelCheck.from_dict(check))
 
 
 def _three_named_clicks(win):

@@ -240,7 +240,7 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
              "click_indices": list(range(len(assigned)) if click_indices is None else click_indices)}
     return SimpleNamespace(pose=pose, projection_matrix=geometry.projection_matrix(pose), geometry=geometry,
                            stages=[], levels=levels, drr_line_integral=None, convergence=[],
-                           ok=status != "contradicted", warnings=[], magnification=1.6,
+                           ok=status != "contradicted", warnings=[], failed_checks=[], magnification=1.6,
                            level_check=LevelCheck.from_dict(check), appearance=None, field_mask=None)
 
 

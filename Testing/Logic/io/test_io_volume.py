@@ -488,3 +488,17 @@ def test_enhanced_multiframe_ct(tmp_path, oblique_volume):
     path = write_enhanced_ct(tmp_path / "gap.dcm", oblique_volume, [0, 1, 2, 4, 5, 6, 7, 8])
     with pytest.raises(InputFileError, match="probably missing"):
         load_volume(path)
+
+
+def test_a_single_projection_xray_given_as_the_ct_is_named_as_such(tmp_path):
+    """One X-ray DICOM file given as the CT: the message names that file and what it is, not its folder's
+    missing slices."""
+    from carmreg.logic.geometry.camera import CarmIntrinsics
+    from carmreg.logic.io.xray import write_xray_dicom
+
+    path = write_xray_dicom(tmp_path / "shot.dcm", np.zeros((8, 8), np.uint16), CarmIntrinsics(1000.0, (0.3, 0.3),
+                                                                                                 (8, 8)))
+    with pytest.raises(InputFileError) as err:
+        load_volume(path)
+    assert str(err.value).startswith(f"{path}: a DICOM XA image without a slice position")
+    assert "--xray" in str(err.value)

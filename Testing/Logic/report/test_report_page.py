@@ -43,6 +43,7 @@ def _result(status: str) -> RegistrationResult:
                               drr_line_integral=xray[::-1].copy(), xray_line_integral=xray, convergence=[],
                               trajectory=[], similarity_maps={}, database_grid={}, ok=status != "contradicted",
                               warnings=[check["message"]] if status == "contradicted" else [],
+                              failed_checks=[check["message"]] if status == "contradicted" else [],
                               parameters=RegistrationParameters(), level_check=LevelCheck.from_dict(check),
                               inputs={"ct": "/data/ct.nrrd", "xray": "/data/xray.dcm", "geometry_sources":
                                       dict(intr.sources)})
@@ -62,6 +63,20 @@ def test_the_page_reads_back_with_the_answer_levels_pose_inputs_and_versions(tmp
                      "CarmReg 0.1.0", "seed 1", "T10-T12 0.600"):
         assert expected in text, expected
     assert "0.48" not in text.split("mPDE of the pose drawn")[1].split("\n")[0]  # not the fine stage's
+
+
+def test_an_advisory_is_listed_as_a_warning_not_as_a_failed_check(tmp_path):
+    """A contradicted answer with the intensifier's advisory: "CHECKS FAILED" lists the failed checks only (the
+    contradiction, said once as the reason), never the advisory, which the window's banner leaves out too."""
+    advisory = "the X-ray's field is round, as an image intensifier's: its pincushion is not corrected"
+    result = _result("contradicted")
+    result.warnings = result.warnings + [advisory]
+    path = write_report_pdf(tmp_path / "report.pdf", result, result.xray_line_integral, {}, bone_dark=False)
+    text = " ".join(pypdf.PdfReader(str(path)).pages[0].extract_text().split())
+    assert "CHECKS FAILED" in text and "CHECKS FAILED: the X-ray's field" not in text
+    assert text.count("the image fits T11, T12, L1 better") == 1
+    failed = answer_banner(None, False, ["fine-stage mPDE 9.0 mm exceeds 6.0 mm"])
+    assert advisory not in failed[1]
 
 
 def test_drawn_mpde_and_the_answer_in_words_and_colour():
@@ -155,7 +170,7 @@ def test_a_refused_image_names_no_level_on_any_front_door(tmp_path):
     shown = _result("confident")
     refused = _result("confident")
     refused.level_check = refused.level_check.withheld_for(REFUSED)
-    refused.ok, refused.warnings = False, [REFUSED]
+    refused.ok, refused.warnings, refused.failed_checks = False, [REFUSED], [REFUSED]
     check = refused.level_check
     assert (check.status, check.assigned_labels, check.names(), check.winner_labels) == (
         "ambiguous", [], [], ["T10", "T11", "T12"])  # never confident; the contest's winner kept as its record
