@@ -183,6 +183,9 @@ def _parameters(args):
     from carmreg.logic.registration.pipeline import RegistrationParameters
     from carmreg.logic.resources import cache_dir
 
+    if args.cache_dir and not args.no_cache and Path(args.cache_dir).exists() and not Path(args.cache_dir).is_dir():
+        raise CarmRegError(f"--cache-dir {args.cache_dir}: this is a file, not a folder; give a folder for the "
+                           "DRR database cache (created if missing), or --no-cache")
     params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics, polarity=args.polarity,
                                     level_check=not args.no_level_check,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
@@ -228,7 +231,7 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
     xray_lm = _xray_clicks(xray, xray_lm_path, clicks)
     print(f"CT {Path(ct_path).name}: {ct.shape} voxels, {np.round(ct.spacing_mm, 3).tolist()} mm; "
           f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px; "
-          f"levels CT {', '.join(ct_lm.labels)}; X-ray clicks "
+          f"levels CT {', '.join(ct_lm.sorted().labels)}; X-ray clicks "
           f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
     clicked = {lv["label"]: lv["clicked_uv_px"] for lv in result.levels if lv.get("clicked_uv_px") is not None}
@@ -248,7 +251,7 @@ def _print_report(result, seconds: float, out) -> None:
     if names_shown(result.level_check):
         print("levels on the X-ray: " + ", ".join(
             f"{lv['label']}{'*' if lv['fitted'] else ''} ({lv['uv_px'][0]:.0f}, {lv['uv_px'][1]:.0f})"
-            for lv in in_image) + "   (* = clicked)")
+            for lv in in_image) + ("   (* = clicked)" if any(lv["fitted"] for lv in in_image) else ""))
     else:
         print("levels on the X-ray: none named (the image was refused, below)")
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())

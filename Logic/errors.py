@@ -52,6 +52,8 @@ def quote(value, limit: int = 60) -> str:
 
 def describe(exc: BaseException, limit: int = 100) -> str:
     """'Kind: message' of a library exception on one line (whitespace collapsed) and at most ``limit``
-    characters of message, for embedding in a one-line CarmRegError."""
+    characters of message, cut at a word with "..." when longer, for embedding in a one-line CarmRegError."""
     text = " ".join(str(exc).split())
-    return f"{exc.__class__.__name__}: {text[:limit]}"
+    if len(text) > limit:
+        text = (text[:limit].rsplit(" ", 1)[0] or text[:limit]) + " ..."
+    return f"{exc.__class__.__name__}: {text}"

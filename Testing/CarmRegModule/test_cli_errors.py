@@ -255,3 +255,9 @@ def test_real_process_library_warnings_stay_off_stderr(case):
 def test_window_geometry_without_an_xray_is_refused(capsys):
     code, err = run(capsys, ["gui", "--sample", "--sdd-mm", "1000"])
     assert_one_line_error(code, err, "--sdd-mm and --pixel-spacing-mm describe the X-ray given with --xray")
+
+
+def test_a_cache_dir_that_is_a_file_is_refused(case, capsys):
+    blocker = _write(case, "cache-file", "not a folder")
+    code, err = run(capsys, register_args(case, cache_dir=blocker, no_cache=None))
+    assert_one_line_error(code, err, "this is a file, not a folder")
