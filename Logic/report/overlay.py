@@ -78,15 +78,18 @@ def _draw_level(ax, level: dict, marker, scale: float) -> None:
                 bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.55, "ec": "none"})
 
 
-def _draw_banner(ax, banner: tuple[str, str, str], scale: float, rows: int, cols: int) -> None:
+def _draw_banner(ax, banner: tuple[str, str, str], scale: float, rows: int, cols: int,
+                 clear_rows: float = float("inf")) -> None:
     """The level answer in white on its colour across the top of the image: the headline, and the reason
-    below it when it fits in BANNER_MAX_ROWS of the image; the font shrinks so the headline fits the width."""
+    below it when it fits in BANNER_MAX_ROWS of the image and above ``clear_rows`` (the first row of a level's
+    marker or name: the reason never covers one); the font shrinks so the headline fits the width."""
     headline, reason, colour = banner
     char_px = 0.62 * RENDER_DPI / 72.0  # width of a character per point of font size, px
     points = min(LABEL_POINTS * scale, 0.96 * cols / (char_px * max(len(headline), 1)))
     lines = textwrap.wrap(reason, max(20, int(0.96 * cols / (char_px * points)))) if reason else []
     line_px = 1.35 * points * RENDER_DPI / 72.0
-    text = headline if (1 + len(lines)) * line_px > BANNER_MAX_ROWS * rows else "\n".join([headline, *lines])
+    room = min(BANNER_MAX_ROWS * rows, clear_rows)
+    text = headline if (1 + len(lines)) * line_px > room else "\n".join([headline, *lines])
     ax.text(0.012, 0.988, text, transform=ax.transAxes, va="top", ha="left", color="white", fontsize=points,
             linespacing=1.35, bbox={"boxstyle": "square,pad=0.45", "fc": colour, "alpha": 0.92, "ec": "none"})
 
@@ -110,7 +113,10 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
                  names_shown(level_check))
     banner = answer_banner(level_check, ok, list(failed_checks))
     if banner is not None:
-        _draw_banner(ax, banner, scale, rows, cols)
+        tops = [lv["uv_px"][1] for lv in levels if lv.get("in_image", True)]
+        tops += [uv[1] for uv in (clicked or {}).values()]
+        marker_px = 12.0 * scale * RENDER_DPI / 72.0  # a marker's and a name's half height, with room
+        _draw_banner(ax, banner, scale, rows, cols, min(tops, default=float("inf")) - marker_px)
     canvas.draw()
     out = np.asarray(canvas.buffer_rgba())[:rows, :cols, :3]
     return np.ascontiguousarray(out)

@@ -227,3 +227,22 @@ def test_long_reasons_and_warnings_stay_in_their_boxes_smaller_then_cut(words):
     assert sizes <= set(FIT_SIZES_PT) and min(sizes) < FIT_SIZES_PT[0]  # smaller type than a short page's
     cut = any(t.get_text().endswith(CUT.strip()) for t in (reason, blocks[1]))
     assert cut == (words == 400)  # cut only when even the smallest type cannot hold it
+
+
+def test_the_overlay_banners_reason_never_covers_a_level():
+    """overlay.png: the banner's reason is written under its headline only while it stays above the highest
+    level drawn (the demo without clicks lost T8's name under it)."""
+    from carmreg.logic.report.overlay import render_overlay
+
+    rgb = np.full((400, 400, 3), 90, np.uint8)
+    check = _result("ambiguous").level_check
+
+    def banner_rows(v_px: float) -> int:
+        level = {"label": "T8", "uv_px": [200.0, v_px], "fitted": False, "pde_mm": None, "in_image": True}
+        out = render_overlay(rgb, [level], None, check, True, [])
+        column = out[:, 3].astype(int)
+        return int(np.sum(np.abs(column - 90).sum(axis=1) > 30))  # rows of the banner's colour at the left edge
+
+    low, high = banner_rows(390.0), banner_rows(30.0)
+    assert high < low  # the reason left out when a level sits high
+    assert high > 5  # the headline stays
