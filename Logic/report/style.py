@@ -86,12 +86,13 @@ class LevelMarker:
 def level_marker(level: dict, contradicted: bool, with_text: bool = True) -> LevelMarker:
     """The marker of one ``result.levels`` entry: ``T12  1.8 mm`` in green for a fitted level (PDE to the
     click, detector mm), ``T12?  1.8 mm`` in the contradiction colour when ``contradicted``, ``L2`` in yellow
-    for a level not clicked; ``with_text`` False gives an empty text (names hidden)."""
+    for a level not clicked (``L2?`` when ``contradicted``: drawn at the pose fitted to the contradicted names,
+    it would sit on a neighbour); ``with_text`` False gives an empty text (names hidden)."""
     fitted = bool(level.get("fitted"))
-    wrong = fitted and contradicted  # a name the image contradicts must not look confirmed
     pde = level.get("pde_mm")
-    text = level["label"] + ("?" if wrong else "") + (f"  {pde:.1f} mm" if pde is not None else "")
-    colour = (status_ink("contradicted") if wrong else FITTED_COLOUR) if fitted else CHECK_COLOUR
+    # a name the image contradicts, or placed by a pose fitted to such names, must not look confirmed
+    text = level["label"] + ("?" if contradicted else "") + (f"  {pde:.1f} mm" if pde is not None else "")
+    colour = (status_ink("contradicted") if contradicted else FITTED_COLOUR) if fitted else CHECK_COLOUR
     return LevelMarker(text if with_text else "", colour, fitted)
 
 

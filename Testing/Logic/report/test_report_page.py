@@ -246,3 +246,15 @@ def test_the_overlay_banners_reason_never_covers_a_level():
     low, high = banner_rows(390.0), banner_rows(30.0)
     assert high < low  # the reason left out when a level sits high
     assert high > 5  # the headline stays
+
+
+def test_every_name_drawn_under_a_contradiction_carries_a_question_mark():
+    """The levels not clicked are placed by the pose fitted to the contradicted names: one level off, they would
+    sit on a neighbour, so they are marked unsure too (keeping the not-clicked colour)."""
+    from carmreg.logic.report.style import CHECK_COLOUR, level_marker
+
+    clicked = {"label": "T10", "fitted": True, "pde_mm": 1.2}
+    other = {"label": "L1", "fitted": False, "pde_mm": None}
+    assert [level_marker(lv, False).text for lv in (clicked, other)] == ["T10  1.2 mm", "L1"]
+    assert [level_marker(lv, True).text for lv in (clicked, other)] == ["T10?  1.2 mm", "L1?"]
+    assert level_marker(other, True).colour == CHECK_COLOUR
