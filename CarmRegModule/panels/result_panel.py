@@ -251,12 +251,15 @@ class ResultPanel(QtWidgets.QWidget):
             from carmreg.logic.registration.level_confidence import ConfidenceRule
 
             t = ConfidenceRule().margin
-            margin += f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})"
+            margin += (f"  (runner-up score minus this one: proposed from +{t:.3f}; never confident without clicks)"
+                       if mode == "image_only" else
+                       f"  (runner-up score minus this one: confident from +{t:.3f}, contradicted below -{t:.3f})")
         self.level_margin_label.setText(margin)
         runner_up = [] if check.withheld else check.runner_up_labels
         prefers = status == "contradicted" and mode in ("named", "partly_named")
+        at_centre = " at the centre" if mode == "image_only" else ""  # no clicks: a pose, by its centre level
         self.level_runner_up_label.setText(("the image prefers " if prefers else "") + ", ".join(runner_up)
-                                           if runner_up else "-")
+                                           + at_centre if runner_up else "-")
         self._set_hypotheses(check, labels)
 
     def _set_hypotheses(self, check: LevelCheck, labels: list[str]) -> None:
@@ -270,7 +273,8 @@ class ResultPanel(QtWidgets.QWidget):
         winner = None if record else list(check.winner_labels or labels)
         for row, h in enumerate(hypotheses):
             registered = h.get("refined", True)
-            cells = [", ".join(h.get("labels") or []) or "-"] + [
+            names = ", ".join(h.get("labels") or []) or "-"
+            cells = [f"{names} at the centre" if check.mode == "image_only" and names != "-" else names] + [
                 _number(h.get(k), d) if registered else "-"
                 for k, d in (("score", 3), ("similarity", 3), ("mpde_mm", 2))]
             if not registered:
