@@ -60,10 +60,9 @@ def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: 
     Errors in these inputs are shown as dialogs; the window stays open. Call ``check_display`` first.
     """
     from .main_window import CarmRegWidget
-
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from .qt_signals import quit_window_on_signals
 
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     app = ensure_app(offscreen=False)
     window = CarmRegWidget()
     quit_window_on_signals(app, window)

@@ -103,10 +103,11 @@ class WindowSession:
         levels = [{"in_image": True, "clicked_uv_px": None, "name_margin": None, **lv}
                   for lv in summary.get("levels") or []]
         warnings = list(summary.get("warnings") or [])
-        failed = summary.get("failed_checks")  # a session saved before it was recorded: every warning, as then
+        failed = summary.get("failed_checks")
+        if failed is None:  # a session saved before the failed checks were recorded apart: its warnings, as then
+            failed = [] if summary.get("ok") else warnings
         result = SavedResult(pose, P, geometry, stages, levels, bool(summary.get("ok")), warnings,
-                             LevelCheck.from_dict(summary.get("level_check")),
-                             list(warnings if failed is None and not summary.get("ok") else failed or []))
+                             LevelCheck.from_dict(summary.get("level_check")), list(failed))
         self.set_result(result)
         if summary.get("stale"):
             self.mark_result_stale("inputs changed since this result")
