@@ -66,7 +66,7 @@ class WindowData:
         """Show ``xray`` (read from ``path``) with its geometry. Another X-ray file than the one shown takes the
         clicks of the previous image away (``_drop_clicks_of_previous_xray``)."""
         first = self.xray is None or self.xray_path != path
-        if self.xray is not None and path is not None and path != self.xray_path:
+        if first and self.xray is not None and path is not None:  # another file replaces the one shown
             self._drop_clicks_of_previous_xray()
         self.xray, self.xray_path = xray, path
         self.geometry_overrides = dict(overrides or {})

@@ -118,9 +118,7 @@ class WindowSession:
     def new_session(self, ask: bool = True) -> bool:
         if ask and not self.maybe_save("Start a new session"):
             return False
-        if self.is_running():
-            self.cancel_registration()
-            self.wait_for_registration(30)
+        self._stop_registration()
         self.set_ct_volume(None)
         self.set_xray_image(None)
         self.geometry_overrides = {}
@@ -215,16 +213,11 @@ class WindowSession:
             if choice != "Cancel and quit":
                 event.ignore()
                 return
-            self.cancel_registration()
-            self.wait_for_registration(30)
+            self._stop_registration()
         if not self.maybe_save("Quit"):
             event.ignore()
             return
-        self._autosave_timer.stop()
-        if self.autosave_enabled:
-            session_io.clear_autosave(folder=self.state_folder)
-        for v3 in (self.view3d, self.view3d_result):
-            v3.close_plotter()
+        self._release_for_quit(keep_autosave=False)
         event.accept()
 
     def close_for_signal(self, signum: int) -> None:
@@ -233,18 +226,27 @@ class WindowSession:
         application's event loops end with exit code 128 + ``signum`` (``quit_code``, for a signal that lands
         before the main loop runs)."""
         self.quit_code = 128 + int(signum)
+        self._stop_registration()
+        self._release_for_quit(keep_autosave=self._dirty)
+        self.hide()
+        self._end_application(self.quit_code)
+
+    def _stop_registration(self) -> None:
+        """Cancel a running registration and wait (up to 30 s) for its worker to end."""
         if self.is_running():
             self.cancel_registration()
             self.wait_for_registration(30)
+
+    def _release_for_quit(self, keep_autosave: bool) -> None:
+        """The last steps of quitting: no more autosave timer; the autosave written now and kept for recovery
+        (``keep_autosave``) or removed (nothing unsaved: no recovery to offer); the 3D plotters closed."""
         self._autosave_timer.stop()
-        if self._dirty:
+        if keep_autosave:
             self.autosave_now()
-        elif self.autosave_enabled:  # nothing unsaved: no recovery to offer next time (as a clean close)
+        elif self.autosave_enabled:
             session_io.clear_autosave(folder=self.state_folder)
         for v3 in (self.view3d, self.view3d_result):
             v3.close_plotter()
-        self.hide()
-        self._end_application(self.quit_code)
 
     @staticmethod
     def _end_application(code: int) -> None:
@@ -256,9 +258,7 @@ class WindowSession:
 
     def discard_and_close(self) -> None:
         """Close without asking and without keeping an autosave (scripts, screenshots, tests)."""
-        if self.is_running():
-            self.cancel_registration()
-            self.wait_for_registration(30)
+        self._stop_registration()
         self._dirty = False
         self.undo_stack.clear()
         self.close()
