@@ -53,7 +53,7 @@ def run_gui(ct=None, xray=None, ct_landmarks=None, xray_landmarks=None, sample: 
             session=None, geometry: dict | None = None) -> int:
     """Open the CarmReg window, optionally with data; returns the application's exit code.
 
-    ct / xray: paths of a CT (DICOM folder, NIfTI, NRRD, MetaImage) and an X-ray (DICOM, PNG, TIFF);
+    ct / xray: paths of a CT (DICOM folder, NIfTI, NRRD, MetaImage) and an X-ray (DICOM, PNG, TIFF, JPEG);
     ct_landmarks / xray_landmarks: .mrk.json (or plain JSON) centroids; sample: load the embedded sample case;
     session: a saved session file (data, points and the last result); geometry: the X-ray's geometry
     overrides ({"sdd_mm": mm, "pixel_spacing_mm": (column, row) mm}) for a file that does not give it.

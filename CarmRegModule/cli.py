@@ -144,7 +144,7 @@ def _window_inputs(p: argparse.ArgumentParser) -> None:
                    "and the last result")
     p.add_argument("--sample", action="store_true", help="the embedded sample case")
     p.add_argument("--ct", help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
-    p.add_argument("--xray", help="X-ray: DICOM (XA/RF/DX/CR), PNG or TIFF")
+    p.add_argument("--xray", help="X-ray: DICOM (XA/RF/DX/CR), PNG, TIFF or JPEG")
     p.add_argument("--ct-landmarks", metavar="FILE", help="CT centroids (.mrk.json or JSON), named by level")
     p.add_argument("--xray-landmarks", metavar="FILE", help="X-ray clicks (.mrk.json or JSON), named or not")
     p.add_argument("--sdd-mm", type=float, help="the X-ray's source-to-detector distance, when its file does not "

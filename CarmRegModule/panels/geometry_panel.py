@@ -86,7 +86,8 @@ class GeometryPanel(QtWidgets.QGroupBox):
                 ("sod_mm", "Source-isocentre (SOD)", [self.sod]),
                 ("distortion_mm", "Pincushion at 100 mm (calibration)", [self.distortion])]
         for r, (name, text, boxes) in enumerate(rows, start=1):
-            grid.addWidget(QtWidgets.QLabel(text), 2 * r - 1, 0, 1, 4)
+            beside_title = name == "principal_point_px"  # its value row holds the 'detector centre' box
+            grid.addWidget(QtWidgets.QLabel(text), 2 * r - 1, 0, 1, 2 if beside_title else 4)
             for c, box in enumerate(boxes):
                 grid.addWidget(box, 2 * r, c)
                 box.editingFinished.connect(lambda n=name: self._edited(n))
@@ -94,16 +95,14 @@ class GeometryPanel(QtWidgets.QGroupBox):
             source.setObjectName("hint")
             source.setWordWrap(True)
             self.sources[name] = source
-            grid.addWidget(source, 2 * r, 2, 1, 2)
+            grid.addWidget(source, 2 * r - 1 if beside_title else 2 * r, 2, 1, 2)
         grid.addWidget(self.pp_centre, 6, 2, 1, 2)
         self.pp_centre.toggled.connect(self._centre_toggled)
-        self.sources["principal_point_px"].hide()
         self.measure_button = QtWidgets.QPushButton("Measure the pincushion on a bead-grid X-ray...")
         self.measure_button.setToolTip("An X-ray of a plate of beads on a square grid at the intensifier's input, "
                                        "taken with this C-arm (carmreg calibrate-distortion)")
         self.measure_button.clicked.connect(self.measure_distortion_requested)
         grid.addWidget(self.measure_button, 11, 0, 1, 4)
-        grid.addWidget(self.sources["principal_point_px"], 12, 0, 1, 4)
         self.size_label = QtWidgets.QLabel()
         self.size_label.setObjectName("hint")
         self.magnification_label = QtWidgets.QLabel()
@@ -157,7 +156,6 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.preset_combo.setCurrentIndex(max(index, 0))
         for name, label in self.sources.items():
             label.setText(self._source_text(name))
-        self.sources["principal_point_px"].setVisible(False)
         self.size_label.setText(f"Detector: {size[0]} x {size[1]} px (columns x rows), from the image"
                                 if xray is not None else "Load an X-ray to see its geometry")
         if sdd and (sod or sdd):

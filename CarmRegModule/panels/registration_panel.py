@@ -254,7 +254,8 @@ class RegistrationPanel(QtWidgets.QWidget):
         nxt = self.next_stage()
         self.run_button.setEnabled(ready and not running)
         self.next_button.setEnabled(ready and not running and nxt is not None)
-        self.next_button.setText(f"Next: {STAGE_TITLES.get(nxt, nxt).lower()}" if nxt else "All stages done")
+        title = STAGE_TITLES.get(nxt, nxt) if nxt else ""
+        self.next_button.setText(f"Next: {title[:1].lower()}{title[1:]}" if nxt else "All stages done")
         self.next_button.setToolTip(f"Run only the next stage ({nxt})" if nxt else "")
         partial = bool(self._done) and nxt is not None
         self.run_button.setText("Register (continue)" if partial else "Register (all stages)")

@@ -115,7 +115,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to
+from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to, rank_image
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
@@ -254,17 +254,6 @@ class Appearance:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def rank_image(pixels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """R in [0, 1] inside ``mask`` (ties broken by position; 0 outside): the storage-free image (docstring)."""
-    out = np.zeros(pixels.shape, np.float32)
-    values = np.asarray(pixels, np.float64)[mask]
-    if values.size > 1:
-        ranks = np.empty(values.size, np.float64)
-        ranks[np.argsort(values, kind="stable")] = np.arange(values.size)
-        out[mask] = (ranks / (values.size - 1)).astype(np.float32)
-    return out
 
 
 def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: int) -> tuple[dict, dict]:

@@ -5,7 +5,11 @@ I_lo the 99.5th and 0.5th percentiles there, and the polarity and storage found 
 
 - bone dark, stored as linear intensity (I ~ I0 exp(-L)): ``L_est = -log(I / I_ref)``;
 - bone dark, stored as a log-like display (I ~ a - b L): ``L_est = (I_ref - I) / (I_ref - I_lo)``;
-- bone bright (attenuation-like, unknown scale): ``L_est = (I - I_lo) / (I_ref - I_lo)``.
+- bone bright (attenuation-like, unknown scale): ``L_est = (I - I_lo) / (I_ref - I_lo)``;
+- either polarity, ``EQUALISED``: the rank of I inside the field, ``R = rank(I) / (n - 1)`` (``rank_image``),
+  ``L_est = 1 - R`` bone dark, ``R`` bone bright. It undoes any increasing storage map (gamma, window, 8-bit
+  quantisation) up to a histogram equalisation: a second opinion on how well an image agrees with a DRR when its
+  display processing is unknown (``registration.agreement``), not the image registered.
 
 0 outside the field, clipped at 0.
 """
@@ -16,12 +20,28 @@ import numpy as np
 
 STORAGES = ("linear-intensity", "log-display")
 """How a bone-dark image can be stored (``attenuation``); ``appearance`` finds which."""
+EQUALISED = "equalised"
+"""The storage-free conversion of either polarity (module docstring)."""
+
+
+def rank_image(pixels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """R in [0, 1] inside ``mask`` (ties broken by position; 0 outside): the storage-free image (module docstring)."""
+    out = np.zeros(pixels.shape, np.float32)
+    values = np.asarray(pixels, np.float64)[mask]
+    if values.size > 1:
+        ranks = np.empty(values.size, np.float64)
+        ranks[np.argsort(values, kind="stable")] = np.arange(values.size)
+        out[mask] = (ranks / (values.size - 1)).astype(np.float32)
+    return out
 
 
 def attenuation(pixels: np.ndarray, mask: np.ndarray, bone_dark: bool = True,
                 storage: str = "linear-intensity") -> np.ndarray:
     """Line-integral-like image (bone bright) from stored pixels (module docstring); 0 outside the field.
-    ``storage`` matters for bone-dark images only: one of ``STORAGES``."""
+    ``storage``: one of ``STORAGES`` (bone-dark images only; bone-bright ones are used linearly) or ``EQUALISED``."""
+    if storage == EQUALISED:
+        ranked = rank_image(pixels, mask)
+        return np.where(mask, 1.0 - ranked, 0.0).astype(np.float32) if bone_dark else ranked
     img = np.asarray(pixels, np.float64)
     inside = img[mask]
     lo, hi = np.percentile(inside, [0.5, 99.5])

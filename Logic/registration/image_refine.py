@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals, row_spans
-from carmreg.logic.geometry.camera import CarmGeometry
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
@@ -62,6 +62,15 @@ class RefineResult:
     seconds: float = 0.0
     objective_end: float = float("nan")
     stopped_at: int | None = None       # evaluations after which ``give_up`` stopped it (None: ran in full)
+    equalised_similarity: float = float("nan")  # GC at ``pose`` on the equalised X-ray (``agreement``; nan: not
+    #                                             measured)
+
+
+def refine_detector(intrinsics: CarmIntrinsics, params: RefineParameters) -> tuple[int, CarmIntrinsics]:
+    """(binning factor, binned detector) on which a refinement with ``params`` compares DRRs with the X-ray: the
+    factor that brings the pixel nearest ``params.detector_pixel_mm``."""
+    factor = max(1, int(round(params.detector_pixel_mm / min(intrinsics.pixel_spacing_mm))))
+    return factor, intrinsics.binned(factor)
 
 
 def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px, p: RefineParameters,
@@ -87,8 +96,7 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     p = params or RefineParameters()
     t0 = time.perf_counter()
     intr = geometry.intrinsics
-    factor = max(1, int(round(p.detector_pixel_mm / min(intr.pixel_spacing_mm))))
-    small = intr.binned(factor)
+    factor, small = refine_detector(intr, p)
     cols, rows = small.size_px
     fixed = bin_image_to(xray_line_integral, factor, (rows, cols))
     fmask = bin_mask_to(mask, factor, (rows, cols))

@@ -54,6 +54,7 @@ class FitContext:
     depth_step_mm: float = 10.0
     should_stop: object = None
     on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
+    xray_equalised: np.ndarray | None = None  # (rows, cols) the X-ray's rank image (``agreement``; None: not used)
 
 
 @dataclass
@@ -99,6 +100,13 @@ class LabellingFit:
         return float(self.refine.similarity_end) if self.refine is not None else float("nan")
 
     @property
+    def agreement(self) -> float:
+        """The image agreement the confidence rule judges (``agreement``): the better of ``similarity`` and the GC
+        on the equalised X-ray at the same pose, when that was measured."""
+        equalised = self.refine.equalised_similarity if self.refine is not None else float("nan")
+        return float(max(self.similarity, equalised)) if np.isfinite(equalised) else self.similarity
+
+    @property
     def mpde_mm(self) -> float:
         return float(self.refine.mpde_mm) if self.refine is not None else float("nan")
 
@@ -110,7 +118,8 @@ class LabellingFit:
         """For result.json; ``start_curves``: each start's best objective after each CMA-ES generation, from which
         one can read whether a labelling was still improving when its search ended (a fair contest)."""
         return {"labels": list(self.labels), "shift": self.shift, "score": self.score,
-                "similarity": self.similarity, "mpde_mm": self.mpde_mm, "refined": self.refined,
+                "similarity": self.similarity, "agreement": self.agreement, "mpde_mm": self.mpde_mm,
+                "refined": self.refined,
                 "starts": self.starts, "start_scores": [float(x) for x in self.runs],
                 "stopped_at_evaluations": self.stopped_at,
                 "start_curves": [{"evaluations": [e for e, _ in curve], "objective": [round(f, 6) for _, f in curve]}

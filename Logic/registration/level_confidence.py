@@ -9,8 +9,9 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
 3. a confident or contradicted verdict stands only when the labelling it rests on (the best one, ``winner``)
    passes every check against the labelling it beat (``rival``):
 
-   - image agreement: ``GC(winner) >= min_similarity`` - a labelling that matches the image poorly has won
-     nothing, however large its lead;
+   - image agreement: ``A(winner) >= min_similarity`` - a labelling that matches the image poorly has won
+     nothing, however large its lead. A is the winner's GC, or the GC of the same pose on the equalised X-ray when
+     higher (``agreement``: a processed display lowers the GC of the conversion it was registered on);
    - landmark fit: ``mPDE(winner) <= landmark_ratio * mPDE(rival) + landmark_slack_mm`` - a labelling the clicks
      fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
      clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
@@ -38,7 +39,7 @@ from carmreg.logic.registration.labelling_fit import LabellingFit
 @dataclass
 class ConfidenceRule:
     margin: float = 0.02              # objective difference between confident and ambiguous
-    min_similarity: float = 0.40      # GC at the winning labelling's pose, below which nothing is confirmed
+    min_similarity: float = 0.40      # image agreement at the winner's pose, below which nothing is confirmed
     # (chosen on the appearance benchmark's tune half: the highest floor that costs no confident right answer
     # there - right answers reached GC >= 0.41, labellings that won wrongly up to 0.47, stopped by other checks)
     landmark_ratio: float = 1.5       # the winner's click mPDE may exceed the rival's by this factor ...
@@ -64,18 +65,20 @@ class Evidence:
     the leading two kept their order when refitted from each other's pose, and whether the X-ray's appearance is
     trusted."""
 
-    gc: float
+    gc: float                                   # the winner's image agreement (``LabellingFit.agreement``)
     winner_mpde_mm: float = float("nan")
     rival_mpde_mm: float = float("nan")
     stable: bool = True
     appearance_ok: bool = True
     winner_labels: tuple = ()
     rival_labels: tuple = ()
+    gc_converted: float = float("nan")         # the winner's GC on the X-ray as converted (its score's)
 
     @classmethod
     def of(cls, winner: LabellingFit, rival: LabellingFit | None, stable: bool, appearance_ok: bool) -> Evidence:
-        return cls(winner.similarity, winner.mpde_mm, rival.mpde_mm if rival is not None else float("nan"),
-                   stable, appearance_ok, tuple(winner.labels), tuple(rival.labels) if rival is not None else ())
+        return cls(winner.agreement, winner.mpde_mm, rival.mpde_mm if rival is not None else float("nan"),
+                   stable, appearance_ok, tuple(winner.labels), tuple(rival.labels) if rival is not None else (),
+                   winner.similarity)
 
     @classmethod
     def from_checks(cls, checks: dict) -> Evidence:
@@ -98,7 +101,8 @@ def landmark_limit_mm(rival_mpde_mm: float, rule: ConfidenceRule) -> float:
 def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> tuple[dict, list[str]]:
     """Each check's values and pass/fail, and the reasons in words of those that failed (module docstring)."""
     checks, reasons = {}, []
-    checks["image_agreement"] = {"gc": e.gc, "min": rule.min_similarity, "ok": bool(e.gc >= rule.min_similarity)}
+    checks["image_agreement"] = {"gc": e.gc, "gc_as_converted": e.gc_converted, "min": rule.min_similarity,
+                                 "ok": bool(e.gc >= rule.min_similarity)}
     if not checks["image_agreement"]["ok"]:
         reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
                        f"{rule.min_similarity:.2f})")

@@ -41,12 +41,14 @@ equals the labelling's margin.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
+from carmreg.logic.registration.agreement import measure_agreement
 from carmreg.logic.registration.early_stop import give_up_above, lower_bound
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
@@ -187,8 +189,10 @@ def _settle(ctx: FitContext, fits: list[LabellingFit], keep: int | None) -> None
 
 def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
     """The labelling passes the confidence rule's absolute checks on its own: image agreement at the floor, clicks
-    fitted within the cap (``level_confidence.check_results`` without a rival)."""
-    checks, _ = check_results(Evidence.of(fit, None, True, True), rule)
+    fitted within the cap (``level_confidence.check_results`` without a rival). The agreement is the GC the contest
+    runs on (not ``agreement``'s second opinion): this decides only whether to search wider, and a wider search is
+    never wrong."""
+    checks, _ = check_results(dataclasses.replace(Evidence.of(fit, None, True, True), gc=fit.similarity), rule)
     return checks["image_agreement"]["ok"] and checks.get("landmark_fit", {"ok": True})["ok"]
 
 
@@ -266,6 +270,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
         _settle(ctx, fits, keep)
     given = fits[plan.given_index] if plan.given_index is not None else None
+    measure_agreement(ctx, fits)
     if not appearance_clear and judge_appearance is not None:
         unblocked = decide(fits, given, p.rule, stable=stable)  # the verdict were the appearance clear
         if unblocked.status != "ambiguous":  # the appearance alone keeps it from standing
@@ -341,6 +346,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: 
     distinct = {}
     for h in sorted(hypotheses, key=lambda h: h.score):
         distinct.setdefault(h.labels[0], h)
+    measure_agreement(ctx, list(distinct.values()))
     verdict = decide_image_only(list(distinct.values()), p.rule, appearance_clear=appearance_clear)
     visible = visible_levels(ctx.geometry, verdict.winner.pose, ct, ctx.mask)
     message = _message("image_only", verdict, verdict.winner, visible)

@@ -50,7 +50,7 @@ from carmreg.logic.image.appearance import (
     orientation_scores,
 )
 from carmreg.logic.image.field import field_mask, round_field
-from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to, coarse_factor
+from carmreg.logic.image.prepare import EQUALISED, attenuation, bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -495,6 +495,8 @@ class CarmRegLogic:
         ctx = self._fit_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm,
                                 self._labelling_progress(len(clicks.labels), clicks.named,
                                                          len(ct_level_names(state.ct_landmarks)), p.identify))
+        bone_dark = state.appearance.bone_dark if state.appearance is not None else state.xray.bone_dark
+        ctx.xray_equalised = attenuation(state.xray.pixels, state.mask, bone_dark, EQUALISED)  # ``agreement``
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
             reuse = state.image_polarity.pairs(state.appearance.polarity) if state.image_polarity else ()

@@ -40,13 +40,17 @@ def test_typing_a_value_overrides_the_file_and_reset_restores_it(window, synthet
     panel.dv.setValue(0.6)
     panel.du.editingFinished.emit()
     assert window.xray.intrinsics.pixel_spacing_mm == (0.5, 0.6)
+    pp_source = panel.sources["principal_point_px"]
+    assert pp_source.isVisibleTo(panel) and pp_source.text().startswith("DICOM private")
     panel.pp_centre.setChecked(False)
     panel.u0.setValue(100.0)
     panel.u0.editingFinished.emit()
     assert window.xray.intrinsics.principal_point_px == (100.0, 127.5)
+    assert pp_source.text().startswith("entered by hand")
     panel.reset_button.click()
     assert window.xray.intrinsics.sdd_mm == 1000.0 and window.xray.intrinsics.pixel_spacing_mm == (0.9, 0.9)
     assert window.xray.intrinsics.principal_point_px == (127.5, 127.5)
+    assert pp_source.text().startswith("DICOM private")
     assert window.is_dirty()
 
 

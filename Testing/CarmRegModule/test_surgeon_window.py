@@ -267,7 +267,7 @@ def test_progress_moves_inside_the_levels_stage_and_cancel_keeps_finished_stages
         original(worker, stage, fraction, message)
     monkeypatch.setattr(RegistrationWorker, "_progress", progress)
     panel = window.registration_panel
-    assert panel.next_button.text() == "Next: preparing the drr database"
+    assert panel.next_button.text() == "Next: preparing the DRR database"
     window.run_registration(wait=True)
     labelling = [m for s, f, m in seen if s == "levels" and m.startswith("labelling")]
     # 3 runs of 3 clicks along 5 levels, and the leading two refitted from each other's pose: 5 fits

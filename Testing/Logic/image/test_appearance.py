@@ -12,9 +12,9 @@ from scipy import ndimage
 from simulated_cases import simulated_ap_case
 
 from carmreg.logic.errors import CancelledError
-from carmreg.logic.image.appearance import decide_polarity, rank_image
+from carmreg.logic.image.appearance import decide_polarity
 from carmreg.logic.image.field import field_mask, round_field
-from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
+from carmreg.logic.image.prepare import bin_image_to, bin_mask_to, rank_image
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters

@@ -105,6 +105,21 @@ def test_poor_image_agreement_alone_makes_a_clear_lead_ambiguous():
     assert decide([_h(["T10"], 0.50, gc=0.15), named], named, RULE).status == "ambiguous"
 
 
+def test_the_image_agreement_judged_is_the_better_of_the_converted_and_the_equalised_gc():
+    """A processed display: GC 0.35 as converted (under the 0.40 floor) but 0.58 on the equalised image at the same
+    pose - the agreement decides, and confirms; an equalised GC below the converted one changes nothing."""
+    winner, rival = _h(["T10"], 0.50, gc=0.35), _h(["T11"], 0.60)
+    assert decide([winner, rival], None, RULE).status == "ambiguous"
+    winner.refine.equalised_similarity = 0.58
+    v = decide([winner, rival], None, RULE)
+    assert v.status == "confident" and winner.agreement == pytest.approx(0.58)
+    assert v.checks["image_agreement"]["gc"] == pytest.approx(0.58)
+    assert v.checks["image_agreement"]["gc_as_converted"] == pytest.approx(0.35)
+    assert judge(v.margin, Evidence.from_checks(json.loads(json.dumps(v.checks))), RULE)[0] == "confident"
+    winner.refine.equalised_similarity = 0.20
+    assert winner.agreement == pytest.approx(0.35) and decide([winner, rival], None, RULE).status == "ambiguous"
+
+
 def test_a_winner_the_clicks_fit_clearly_worse_is_never_confident():
     """The issue's case (margin 0.048 while the clicks fit 3.19 mm against 1.66 mm), with image agreements above
     the GC floor so that the landmark fit alone decides (the issue's GC 0.364 is below today's floor anyway)."""
@@ -180,6 +195,7 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
 
     plan = levels.ContestPlan("unnamed", fits, list(first), None, [0], np.array([0]))
     monkeypatch.setattr(levels, "plan_contest", lambda *a, **k: plan)
+    monkeypatch.setattr(levels, "measure_agreement", lambda ctx, fits: None)  # no image: the GC staged is the agreement
     monkeypatch.setattr(levels, "fit_labelling", register)
     monkeypatch.setattr(levels, "refit_from", register)
     ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))), None, appearance_clear,
