@@ -26,7 +26,8 @@ from carmreg.logic.report.style import MODE_DESCRIPTION, status_ink
 
 MAX_HYPOTHESES = 6
 HYPOTHESES_TIP = ("The labellings tried, best first (bold: the image's choice). Score: image dissimilarity + "
-                  "landmark misfit, lower is better")
+                  "landmark misfit, lower is better. Similarity: GC at the labelling's pose; 'eq' where the equalised "
+                  "X-ray agrees more, the image agreement the confidence rule judges")
 RECORD_CAPTION = ("The labellings tried on the image as stored: a record of the contest, not an answer (the X-ray "
                   "was refused, no level is named)")
 
@@ -277,6 +278,9 @@ class ResultPanel(QtWidgets.QWidget):
             cells = [f"{names} at the centre" if check.mode == "image_only" and names != "-" else names] + [
                 _number(h.get(k), d) if registered else "-"
                 for k, d in (("score", 3), ("similarity", 3), ("mpde_mm", 2))]
+            agreement = h.get("agreement")
+            if registered and agreement is not None and agreement > (h.get("similarity") or 0.0) + 5e-4:
+                cells[2] += f" (eq {agreement:.3f})"  # the equalised image's GC (registration.agreement)
             if not registered:
                 cells[1] = "not registered"
             elif h.get("stopped_at_evaluations"):  # early_stop: far behind, its search cut short

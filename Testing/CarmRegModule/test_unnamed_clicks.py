@@ -230,7 +230,8 @@ def _fake_result(win, assigned, status, mode="unnamed", margin=0.012, runner_up=
     hypotheses = [{"labels": ["T1", "T2", "T3"], "score": 0.9, "similarity": 0.05, "mpde_mm": 3.0, "refined": False},
                   {"labels": list(runner_up or []), "score": 0.512, "similarity": 0.40, "mpde_mm": 1.1,
                    "refined": True},
-                  {"labels": winner, "score": 0.5, "similarity": 0.41, "mpde_mm": 0.8, "refined": True}]
+                  {"labels": winner, "score": 0.5, "similarity": 0.41, "agreement": 0.47, "mpde_mm": 0.8,
+                   "refined": True}]
     message = {"confident": "the level names agree with the image",
                "ambiguous": "level names AMBIGUOUS: the image fits about as well one level higher",
                "contradicted": "level names CONTRADICTED: check them"}[status]
@@ -269,6 +270,7 @@ def test_assigned_names_show_on_the_clicks_and_can_be_accepted_and_undone(xray_w
     table = rp.hypotheses_table
     assert [table.item(r, 0).text() for r in range(3)] == ["T10, T11, T12", "T11, T12, L1", "T1, T2, T3"]
     assert table.item(0, 1).text() == "0.500" and table.item(0, 0).font().bold()
+    assert table.item(0, 2).text() == "0.410 (eq 0.470)" and table.item(1, 2).text() == "0.400"  # eq where higher
     assert table.item(1, 1).text() == "0.512" and not table.item(1, 0).font().bold()
     assert "ambiguous" in win.registration_panel.status_label.text()
     assert win.xray_panel.table.item(1, 2).text() == "T10"  # the Identified column (rows: T11, ?1, ?2)
