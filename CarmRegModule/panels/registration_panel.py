@@ -254,7 +254,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         nxt = self.next_stage()
         self.run_button.setEnabled(ready and not running)
         self.next_button.setEnabled(ready and not running and nxt is not None)
-        title = STAGE_TITLES.get(nxt, nxt) if nxt else ""
+        title = STAGE_TITLES.get(nxt, nxt) or ""
         self.next_button.setText(f"Next: {title[:1].lower()}{title[1:]}" if nxt else "All stages done")
         self.next_button.setToolTip(f"Run only the next stage ({nxt})" if nxt else "")
         partial = bool(self._done) and nxt is not None
