@@ -103,6 +103,16 @@ verdict is taken only when it is clear and the mirror then leads the stored imag
 display is then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the
 record. No threshold of its own: the verdict's are the two at the clicks.
 
+Without clicks the same holds (stop 28): a mirrored display the database did not refuse left the image-alone
+polarity unclear, often for the wrong polarity (the appearance benchmark's report halves: 5 of the 7 such runs
+recorded at stops 21 and 27). So when the polarity found without clicks is unclear and the orientation not clearly
+as stored (the user did not set the polarity), each polarity is refined on the image mirrored left-right as on the
+image as stored (``REFINED_ON_MIRROR_WITHOUT_CLICKS``, ``pipeline._polarity_on_mirror_without_clicks``). When the
+mirror's leading polarity then agrees with the image by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as
+stored does under that polarity, the display is mirrored: the mirror's verdict is taken (clear at
+``CLEAR_REFINED_GC``) and the image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes
+but the record.
+
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
 user's polarity the image clearly contradicts, keeps any level answer from being confident
@@ -132,6 +142,7 @@ FITTED_MIN_GC = 0.10        # ... and a registration's GC before its keeping the
 REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
 REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # ... on the mirrored display
+REFINED_ON_MIRROR_WITHOUT_CLICKS = "refined, on the image mirrored left-right"  # no clicks, on the mirrored display
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
@@ -182,6 +193,7 @@ class Appearance:
     orientation_clear: bool = True    # the stored orientation leads every other clearly (by whatever decided)
     orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)"
     orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
+    orientation_on_mirror: dict | None = None  # no clicks: {orientation: refined GC} that took the mirror
 
     @property
     def bone_dark(self) -> bool:
@@ -238,10 +250,21 @@ class Appearance:
         clear_gc = CLEAR_ORIENTATION_AT_CLICKS_GC if clear_gc is None else clear_gc
         self.orientation_clear = bool(lead >= clear_gc and not database_refused)
 
+    def set_orientation_on_mirror(self, scores: dict) -> None:
+        """Without clicks: the display taken as mirrored left-right from the refined image-alone registrations
+        (``scores``: {"as-stored": GC, "mirrored-left-right": GC}, each the best under the polarity used), which
+        ``pipeline._polarity_on_mirror_without_clicks`` does only when the mirror leads by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
+        self.orientation_on_mirror = {k: float(v) for k, v in scores.items()}
+        self.orientation, self.orientation_clear = "mirrored-left-right", False
+        self.orientation_decided_by = f"image ({REFINED_ON_MIRROR_WITHOUT_CLICKS})"
+
     def summary(self) -> str:
         """The appearance in words, for the CLI, the window and the report: polarity (``note``), storage, and the
         orientation with how clearly and from what it was found."""
-        where = "at the clicks' poses" if self.orientation_at_clicks is not None else "on the DRR database"
+        where = ("at the clicks' poses" if self.orientation_at_clicks is not None else
+                 "refined on the image and its mirror" if self.orientation_on_mirror is not None else
+                 "on the DRR database")
         how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
         return (f"{self.note}; stored as {self.storage.replace('-', ' ')}; matches the CT "
                 f"{self.orientation.replace('-', ' ')} ({where}{how})")
@@ -249,7 +272,7 @@ class Appearance:
     def orientation_gc(self) -> tuple[float, float]:
         """(GC of the orientation taken, GC as stored) from the scores that decided it."""
         scores = (self.orientation_at_clicks["scores"] if self.orientation_at_clicks is not None
-                  else self.orientation_scores)
+                  else self.orientation_on_mirror or self.orientation_scores)
         return float(scores[self.orientation]), float(scores["as-stored"])
 
     def as_dict(self) -> dict:

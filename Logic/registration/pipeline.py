@@ -44,9 +44,12 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_CLICKS,
     REFINED_AT_DATABASE_POSES,
     REFINED_ON_MIRROR,
+    REFINED_ON_MIRROR_WITHOUT_CLICKS,
+    REFUSE_ORIENTATION_AT_CLICKS_GC,
     better_storage,
     database_gc,
     decide_polarity,
+    image_polarity,
     orientation_scores,
 )
 from carmreg.logic.image.field import field_mask, round_field
@@ -262,6 +265,7 @@ class CarmRegLogic:
         self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
         self._polarity_on_mirror(state, gc_by_storage)
+        self._polarity_on_mirror_without_clicks(state, gc_by_storage)
         self._appearance_warnings(state)
         return state.appearance.as_dict()
 
@@ -301,6 +305,35 @@ class CarmRegLogic:
                                                               p.identify.rule).as_dict())
         if again.orientation == MIRROR:
             self._use_appearance(state, again, gc_by_storage)
+
+    def _polarity_on_mirror_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did
+        not set the polarity): each polarity refined again on the image mirrored left-right, as on the image as
+        stored (``_polarity_from_image``). When the mirror's leading polarity p then gives
+        ``GC_mirror(p) - GC_stored(p) >= REFUSE_ORIENTATION_AT_CLICKS_GC`` (each the best refined GC under p), the
+        display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the image refused
+        (``Appearance.set_orientation_on_mirror``). Otherwise the appearance stays as it was, with the mirror's
+        evidence recorded (``scores["without_clicks_on_mirror"]``). The levels stage keeps the image as stored (a
+        refused image names no level)."""
+        a, p, xray, stored = state.appearance, state.parameters, state.xray, state.image_polarity
+        if (stored is None or a.clear or p.polarity in POLARITIES
+                or (a.orientation == "as-stored" and a.orientation_clear)):
+            return
+        mirrored = self._polarity_from_image(state, gc_by_storage, MIRROR)
+        a.scores["without_clicks_on_mirror"] = on_mirror = mirrored.as_dict()
+        seen, _ = image_polarity(mirrored.scores)
+        gc = {"as-stored": stored.scores[seen], MIRROR: mirrored.scores[seen]}
+        if gc[MIRROR] - gc["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
+            return
+        again = decide_polarity(a.scores["database"], mirrored.scores, p.polarity, xray.bone_dark,
+                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                                refined_by=REFINED_ON_MIRROR_WITHOUT_CLICKS)
+        again.scores.update(without_clicks=a.scores["without_clicks"], without_clicks_on_mirror=on_mirror)
+        again.set_storage(gc_by_storage)
+        again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
+            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
+        again.set_orientation_on_mirror(gc)
+        self._use_appearance(state, again, gc_by_storage)
 
     @classmethod
     def _use_appearance(cls, state: RegistrationState, a, gc_by_storage: dict) -> None:
@@ -420,24 +453,32 @@ class CarmRegLogic:
                           state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
                           p.depth_far_mm, p.depth_step_mm, self._check_cancel, on_labelling)
 
-    def _polarity_from_image(self, state: RegistrationState, gc_by_storage: dict) -> ImagePolarity:
+    def _polarity_from_image(self, state: RegistrationState, gc_by_storage: dict,
+                             orientation: str = "as-stored") -> ImagePolarity:
         """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``), the
-        starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage."""
+        starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage.
+        ``orientation``: judged on that orientation of the image (``oriented_context``; the database's GC map, which
+        is the stored image's, is then not reused)."""
         p, db = state.parameters, state.database
         dark_storage = better_storage(gc_by_storage)
         rows, cols = db.drrs.shape[2:]
-        mask_coarse = bin_mask_to(state.mask, state.coarse_factor, (rows, cols))
         contexts = self._polarity_contexts(state, dark_storage)
+        if orientation != "as-stored":
+            contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
+        mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
         starts, maps = {}, {}
         for polarity, ctx in contexts.items():
-            known = {"gc": gc_by_storage[dark_storage]} if polarity == "bone-dark" else None
+            stored_map = polarity == "bone-dark" and orientation == "as-stored"
+            known = {"gc": gc_by_storage[dark_storage]} if stored_map else None
             coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
             maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
             starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
 
+        where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"
+
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
-                         f"telling bone-dark from bone-bright ({done + 1} of {total})")
+                         f"telling bone-dark from bone-bright{where} ({done + 1} of {total})")
 
         return polarity_from_image(contexts, starts, maps, progress)
 

@@ -13,8 +13,10 @@ from simulated_cases import simulated_ap_case
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_AT_CLICKS_GC,
+    CLEAR_REFINED_GC,
     ORIENTATIONS,
     REFINED_ON_MIRROR,
+    REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     decide_polarity,
     orient_uv,
@@ -174,6 +176,41 @@ def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_fr
     assert a.orientation_at_clicks["scores"][MIRROR] >= a.orientation_at_clicks["scores"]["as-stored"] \
         + REFUSE_ORIENTATION_AT_CLICKS_GC
     assert state.xray_line_integral is not None and state.known_gc is not None
+
+
+@pytest.mark.slow
+def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and_is_refused(sample_case_dir,
+                                                                                          tmp_path_factory):
+    """The same mirrored display, no clicks. Refined on the image as stored, the polarity is unclear (stop 16's
+    run: bone dark 0.455 against bone bright 0.364, under CLEAR_REFINED_GC); refined on its mirror, bone dark leads
+    clearly and the mirror agrees with the image far more than the stored image does: the polarity is taken from
+    the mirror, and the display refused as mirrored (no level answer can be proposed)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
+    import appearance as app
+    import bench_appearance as bench
+
+    maker = bench.CaseMaker(second_ct=False)
+    folder = tmp_path_factory.mktemp("mirrored-case-no-clicks")
+    variant = app.VARIANTS["ii-dark-mirrored-png"]
+    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0, folder)
+    detector = app.DETECTORS[variant.detector]
+    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
+    (ct, _, centroids), _, _ = maker.cts["chest"]
+    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))), p)
+    for stage in ("database", "spatial"):
+        logic.run_stage(state, stage)
+    a = state.appearance
+    stored, mirrored = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_mirror"]["scores"]
+    assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
+    assert mirrored["bone-dark"] >= mirrored["bone-bright"] + CLEAR_REFINED_GC
+    assert (a.polarity, a.clear, a.decided_by) == ("bone-dark", True, f"image ({REFINED_ON_MIRROR_WITHOUT_CLICKS})")
+    assert a.orientation_on_mirror == {"as-stored": stored["bone-dark"], MIRROR: mirrored["bone-dark"]}
+    assert mirrored["bone-dark"] >= stored["bone-dark"] + REFUSE_ORIENTATION_AT_CLICKS_GC
+    assert (a.orientation, a.trusted) == (MIRROR, False)
+    assert a.orientation_gc() == (mirrored["bone-dark"], stored["bone-dark"])  # what the refusal's words quote
+    assert "refined on the image and its mirror" in a.summary()
 
 
 @pytest.fixture(scope="module")
