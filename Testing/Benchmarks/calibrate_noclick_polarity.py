@@ -10,7 +10,8 @@ when it leads the other by the threshold. Unclear, the same polarity is used, bu
 (``level_confidence.decide_image_only``: "ambiguous"). A threshold therefore changes only two things, both
 judged again here exactly from what each run recorded (``result.json["appearance"]["scores"]["refined"]`` and its
 status): whether a polarity verdict is called clear, and whether a proposed answer stays proposed. Runs whose
-polarity the file stated (``decided_by`` not "image (refined)") are untouched.
+polarity the file stated are untouched (``decided_by`` not "image (refined)", or a file stating the polarity the
+image agrees with, which is clear whatever the gap: ``appearance.decide_polarity``).
 
 On the **tune** half (even case index) the thresholds giving the fewest clear and wrong polarity verdicts are
 admissible; among them the one keeping the most clear and right verdicts wins (ties: the lower). The chosen and
@@ -43,7 +44,7 @@ def judged_again(run: dict, threshold: float) -> tuple[bool, bool, str]:
     """(polarity right, polarity clear, status) of ``run`` had the clear gap been ``threshold``."""
     a = run["appearance"]
     right = a["polarity"] == run["polarity_truth"]
-    if a.get("decided_by") != REFINED_BY_IMAGE:
+    if a.get("decided_by") != REFINED_BY_IMAGE or "as the file states" in a.get("note", ""):
         return right, bool(a.get("clear")), run["status"]
     _, gap = image_polarity(a["scores"]["refined"])
     clear = gap >= threshold
