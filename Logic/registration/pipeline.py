@@ -104,7 +104,8 @@ from carmreg.logic.similarity.metrics import METRICS
 
 UNCORRECTED_INTENSIFIER = ("the X-ray's field is round, as an image intensifier's, and no distortion calibration was "
                            "given (--distortion-mm; in the window: C-arm geometry, Pincushion): its pincushion is not "
-                           "corrected, so levels far from the clicks may lie 1-2 mm further off than on a flat panel")
+                           "corrected, so levels far from the clicks (or, without clicks, from the image centre) may "
+                           "lie 1-2 mm further off than on a flat panel")
 
 __all__ = ["MIN_CLICKS", "STAGES", "CarmRegLogic", "RegistrationParameters", "RegistrationResult", "StageResult"]
 
