@@ -1,0 +1,112 @@
+"""Why a large patient's polarity is found wrong without clicks (stop 28's experiment, tune half only).
+
+Not a test. For each appearance-benchmark case folder given (a variant already run by ``bench_appearance`` with
+``--modes none``: ``out_none/result.json`` and ``truth.json`` beside the X-ray), two measurements:
+
+1. at the **true pose** (the benchmark's own geometry and pose, ``appearance.make_geometry``), the GC of the
+   X-ray converted as its true polarity with the DRR (the levels contest's coarse mu level and detector binning),
+   plain and after removing the shading of scales above ``--sigma-mm`` from both images::
+
+       hp(I) = I - G_s * (m I) / G_s * m        (m the exposed field, G_s a Gaussian of s = sigma / pixel)
+
+2. the no-click polarity check as the CLI runs it (database cached): each polarity's refined image-alone
+   registrations (``image_polarity``), their best GC as refined (plain) and rescored after the same high-pass.
+
+Were the large patient's wrong verdict due to the search and not to the image, the true pose would agree with the
+right polarity while the right polarity's refined poses do not reach it::
+
+    .venv/bin/python Testing/Benchmarks/large_patient_shading.py /tmp/w/case026/fp-bright-large-tiff --cache-dir /tmp/c
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from carmreg.logic.drr.cpu import render_line_integrals, row_spans
+from carmreg.logic.geometry.camera import CarmPose
+from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
+from carmreg.logic.io.landmarks import Landmarks2D, read_landmarks_3d
+from carmreg.logic.io.volumes import load_volume
+from carmreg.logic.io.xray import load_xray
+from carmreg.logic.registration.image_refine import refine_detector
+from carmreg.logic.registration.pipeline import CarmRegLogic
+from carmreg.logic.registration.state import RegistrationParameters
+from carmreg.logic.similarity.metrics import gc
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import appearance as app  # noqa: E402  (the benchmark's own appearance chain, beside this file)
+
+POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
+
+
+def high_pass(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` minus its Gaussian-weighted mean over the field (module docstring), 0 outside ``mask``."""
+    m = mask.astype(float)
+    local = ndimage.gaussian_filter(image * m, sigma_px) / np.maximum(ndimage.gaussian_filter(m, sigma_px), 1e-6)
+    return np.where(mask, image - local, 0.0)
+
+
+def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: float) -> tuple[float, float]:
+    """(best plain GC, best high-passed GC) of ``fixed`` against ``drrs`` (n, rows, cols)."""
+    plain = float(np.max(gc(fixed, drrs, mask)))
+    passed = high_pass(fixed, mask, sigma_px)
+    return plain, max(float(gc(passed, high_pass(d, mask, sigma_px)[None], mask)[0]) for d in drrs)
+
+
+def measure(folder: Path, cache_dir: str, sigma_mm: float) -> str:
+    """One table row (module docstring)."""
+    result = json.loads((folder / "out_none" / "result.json").read_text())
+    truth = json.loads((folder / "truth.json").read_text())
+    inputs, g = result["inputs"], result["geometry"]
+    xray = load_xray(inputs["xray"], sdd_mm=g["sdd_mm"], pixel_spacing_mm=g["pixel_spacing_mm"][0])
+    ct, ct_lm = load_volume(inputs["ct"]), read_landmarks_3d(inputs["ct_landmarks"])
+    params = RegistrationParameters(cache_dir=cache_dir)
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, ct_lm, xray, Landmarks2D([], np.zeros((0, 2))), params)
+    for name in ("database", "spatial"):
+        logic.run_stage(state, name)
+    factor, small = refine_detector(state.geometry.intrinsics, params.refine_coarse)
+    cols, rows = small.size_px
+    mask = bin_mask_to(state.mask, factor, (rows, cols))
+    level = state.pyramid.level(params.refine_coarse.mu_spacing_mm)
+    sigma_px = sigma_mm / (state.geometry.intrinsics.pixel_spacing_mm[0] * factor)
+    images = {p: bin_image_to(attenuation(xray.pixels, state.mask, p == "bone-dark", "log-display"), factor,
+                              (rows, cols)) for p in ("bone-dark", "bone-bright")}
+    true_polarity = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
+    geometry = app.make_geometry(ct, app.DETECTORS[app.VARIANTS[folder.name].detector])
+    pose = CarmPose(*[truth["pose"][k] for k in POSE_KEYS]).as_array()
+    at_truth = scores(images[true_polarity], render_line_integrals(level, geometry, pose[None], small,
+                                                                   row_spans(mask)), mask, sigma_px)
+    refined = {}
+    for polarity, fits in state.image_polarity.registered.items():
+        drrs = render_line_integrals(level, state.geometry, np.array([f.pose for f in fits]), small, row_spans(mask))
+        refined[polarity] = scores(images[polarity], drrs, mask, sigma_px)
+    a = state.appearance
+    dark, bright = refined["bone-dark"], refined["bone-bright"]
+    return (f"| {folder.parent.name} {folder.name} | {true_polarity} | {a.polarity}{'' if a.clear else ' (unclear)'} "
+            f"| {at_truth[0]:.3f} | {at_truth[1]:.3f} | {dark[0]:.3f} / {bright[0]:.3f} "
+            f"| {dark[1]:.3f} / {bright[1]:.3f} |")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("folders", nargs="+", type=Path, help="case/variant folders with out_none/result.json")
+    parser.add_argument("--cache-dir", required=True)
+    parser.add_argument("--sigma-mm", type=float, default=20.0, help="the high-pass scale on the detector (mm)")
+    args = parser.parse_args(argv)
+    print(f"| case | true polarity | found without clicks | GC at the true pose | high-passed ({args.sigma_mm:g} mm) "
+          "| refined GC, dark / bright | refined poses high-passed, dark / bright |")
+    print("|---|---|---|---|---|---|---|")
+    for folder in args.folders:
+        print(measure(folder, args.cache_dir, args.sigma_mm), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
