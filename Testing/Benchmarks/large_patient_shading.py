@@ -13,14 +13,22 @@ Not a test. For each appearance-benchmark case folder given (a variant already r
    registrations (``image_polarity``), their best GC as refined (plain) and rescored after the same high-pass.
 
 Were the large patient's wrong verdict due to the search and not to the image, the true pose would agree with the
-right polarity while the right polarity's refined poses do not reach it::
+right polarity while the right polarity's refined poses do not reach it.
 
-    .venv/bin/python Testing/Benchmarks/large_patient_shading.py /tmp/w/case026/fp-bright-large-tiff --cache-dir /tmp/c
+3. with ``--search-high-passed``, the same polarity check again with the search itself high-passed: the DRR
+   database, the X-ray's coarse image (``pipeline.spatial_search`` and ``pipeline.image_starts``: the starts) and
+   every DRR and the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``high_pass`` first.
+   An experiment only: the functions are replaced in this process, CarmReg is unchanged::
+
+    .venv/bin/python Testing/Benchmarks/large_patient_shading.py /tmp/w/case026/fp-bright-large-tiff \\
+        --cache-dir /tmp/c --search-high-passed
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -34,6 +42,7 @@ from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.io.landmarks import Landmarks2D, read_landmarks_3d
 from carmreg.logic.io.volumes import load_volume
 from carmreg.logic.io.xray import load_xray
+from carmreg.logic.registration import image_refine, pipeline
 from carmreg.logic.registration.image_refine import refine_detector
 from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
@@ -43,13 +52,47 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import appearance as app  # noqa: E402  (the benchmark's own appearance chain, beside this file)
 
 POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
+REFINE_PIXEL_MM = RegistrationParameters().refine_coarse.detector_pixel_mm  # the image-alone refinement's pixel
 
 
 def high_pass(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``image`` minus its Gaussian-weighted mean over the field (module docstring), 0 outside ``mask``."""
+    """``image`` (or a stack of images, the last two axes) minus its Gaussian-weighted mean over the field (module
+    docstring), 0 outside ``mask``."""
     m = mask.astype(float)
-    local = ndimage.gaussian_filter(image * m, sigma_px) / np.maximum(ndimage.gaussian_filter(m, sigma_px), 1e-6)
-    return np.where(mask, image - local, 0.0)
+    sigma = (0,) * (np.ndim(image) - 2) + (sigma_px, sigma_px)
+    local = ndimage.gaussian_filter(image * m, sigma) / np.maximum(ndimage.gaussian_filter(m, sigma_px), 1e-6)
+    return np.where(mask, image - local, 0.0).astype(np.asarray(image).dtype)
+
+
+@contextlib.contextmanager
+def high_passed_search(sigma_mm: float):
+    """The no-click search high-passed (module docstring, 3.), for the ``with`` block."""
+    spatial, starts, prepare = pipeline.spatial_search, pipeline.image_starts, image_refine.prepare
+    databases = {}
+
+    def passed(db, xray_coarse, mask_coarse):
+        sigma_px = sigma_mm / db.intrinsics.pixel_spacing_mm[0]
+        if id(db) not in databases:
+            databases[id(db)] = dataclasses.replace(db, drrs=high_pass(db.drrs, mask_coarse, sigma_px))
+        return databases[id(db)], high_pass(xray_coarse, mask_coarse, sigma_px)
+
+    def spatial_passed(db, xray_coarse, mask_coarse, metric="gc", metrics=("gc",), known=None):
+        return spatial(*passed(db, xray_coarse, mask_coarse), mask_coarse, metric, metrics, None)
+
+    def starts_passed(db, xray_coarse, mask_coarse, count):
+        return starts(*passed(db, xray_coarse, mask_coarse), mask_coarse, count)
+
+    def prepare_passed(metric, fixed, mask, dtype=np.float64):
+        sigma_px = sigma_mm / REFINE_PIXEL_MM
+        inner = prepare(metric, high_pass(fixed, mask, sigma_px), mask, dtype=dtype)
+        return lambda drrs: inner(high_pass(np.asarray(drrs, float), mask, sigma_px))
+
+    pipeline.spatial_search, pipeline.image_starts, image_refine.prepare = spatial_passed, starts_passed, \
+        prepare_passed
+    try:
+        yield
+    finally:
+        pipeline.spatial_search, pipeline.image_starts, image_refine.prepare = spatial, starts, prepare
 
 
 def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: float) -> tuple[float, float]:
@@ -59,10 +102,9 @@ def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: floa
     return plain, max(float(gc(passed, high_pass(d, mask, sigma_px)[None], mask)[0]) for d in drrs)
 
 
-def measure(folder: Path, cache_dir: str, sigma_mm: float) -> str:
-    """One table row (module docstring)."""
+def polarity_check(folder: Path, cache_dir: str):
+    """(state after the spatial stage without clicks, CT, params) as the CLI runs it."""
     result = json.loads((folder / "out_none" / "result.json").read_text())
-    truth = json.loads((folder / "truth.json").read_text())
     inputs, g = result["inputs"], result["geometry"]
     xray = load_xray(inputs["xray"], sdd_mm=g["sdd_mm"], pixel_spacing_mm=g["pixel_spacing_mm"][0])
     ct, ct_lm = load_volume(inputs["ct"]), read_landmarks_3d(inputs["ct_landmarks"])
@@ -71,6 +113,21 @@ def measure(folder: Path, cache_dir: str, sigma_mm: float) -> str:
     state = logic.prepare(ct, ct_lm, xray, Landmarks2D([], np.zeros((0, 2))), params)
     for name in ("database", "spatial"):
         logic.run_stage(state, name)
+    return state, ct, params
+
+
+def verdict(state) -> str:
+    """The no-click polarity verdict in words: polarity, (unclear), refined GC dark / bright."""
+    a, refined = state.appearance, state.image_polarity.scores
+    return (f"{a.polarity}{'' if a.clear else ' (unclear)'} "
+            f"{refined['bone-dark']:.3f} / {refined['bone-bright']:.3f}")
+
+
+def measure(folder: Path, cache_dir: str, sigma_mm: float, searched: bool) -> str:
+    """One table row (module docstring)."""
+    truth = json.loads((folder / "truth.json").read_text())
+    state, ct, params = polarity_check(folder, cache_dir)
+    xray = state.xray
     factor, small = refine_detector(state.geometry.intrinsics, params.refine_coarse)
     cols, rows = small.size_px
     mask = bin_mask_to(state.mask, factor, (rows, cols))
@@ -87,11 +144,14 @@ def measure(folder: Path, cache_dir: str, sigma_mm: float) -> str:
     for polarity, fits in state.image_polarity.registered.items():
         drrs = render_line_integrals(level, state.geometry, np.array([f.pose for f in fits]), small, row_spans(mask))
         refined[polarity] = scores(images[polarity], drrs, mask, sigma_px)
-    a = state.appearance
     dark, bright = refined["bone-dark"], refined["bone-bright"]
-    return (f"| {folder.parent.name} {folder.name} | {true_polarity} | {a.polarity}{'' if a.clear else ' (unclear)'} "
-            f"| {at_truth[0]:.3f} | {at_truth[1]:.3f} | {dark[0]:.3f} / {bright[0]:.3f} "
-            f"| {dark[1]:.3f} / {bright[1]:.3f} |")
+    row = (f"| {folder.parent.name} {folder.name} | {true_polarity} | {verdict(state)} "
+           f"| {at_truth[0]:.3f} | {at_truth[1]:.3f} | {dark[0]:.3f} / {bright[0]:.3f} "
+           f"| {dark[1]:.3f} / {bright[1]:.3f} |")
+    if searched:
+        with high_passed_search(sigma_mm):
+            row += f" {verdict(polarity_check(folder, cache_dir)[0])} |"
+    return row
 
 
 def main(argv=None) -> int:
@@ -99,12 +159,15 @@ def main(argv=None) -> int:
     parser.add_argument("folders", nargs="+", type=Path, help="case/variant folders with out_none/result.json")
     parser.add_argument("--cache-dir", required=True)
     parser.add_argument("--sigma-mm", type=float, default=20.0, help="the high-pass scale on the detector (mm)")
+    parser.add_argument("--search-high-passed", action="store_true", help="module docstring, 3.")
     args = parser.parse_args(argv)
-    print(f"| case | true polarity | found without clicks | GC at the true pose | high-passed ({args.sigma_mm:g} mm) "
-          "| refined GC, dark / bright | refined poses high-passed, dark / bright |")
-    print("|---|---|---|---|---|---|---|")
+    searched = " found by the search high-passed, GC dark / bright |" if args.search_high_passed else ""
+    print(f"| case | true polarity | found without clicks, refined GC dark / bright | GC at the true pose "
+          f"| high-passed ({args.sigma_mm:g} mm) | refined GC, dark / bright "
+          f"| refined poses high-passed, dark / bright |{searched}")
+    print("|---|---|---|---|---|---|---|" + ("---|" if searched else ""))
     for folder in args.folders:
-        print(measure(folder, args.cache_dir, args.sigma_mm), flush=True)
+        print(measure(folder, args.cache_dir, args.sigma_mm, args.search_high_passed), flush=True)
     return 0
 
 

@@ -143,30 +143,44 @@ def test_turned_clicks_keep_their_names():
     assert turned.uv_px.tolist() == [[89.0, 20.0], [69.0, 40.0], [49.0, 60.0]]
 
 
-@pytest.mark.slow
-def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_from_the_mirror(sample_case_dir,
-                                                                                              tmp_path_factory):
+@pytest.fixture(scope="module")
+def mirrored_display(tmp_path_factory):
     """The appearance benchmark's tune case 0 (chest CT, its independent simulator), an intensifier image shown
-    mirrored left-right, bone dark, 16-bit PNG, three unnamed clicks: where the clicks put the CT as stored, neither
-    polarity shows an aligned spine (stop 18: the verdict unclear, bone bright taken). Judged on the mirror too, the
-    polarity is found bone dark, and the display mirrored: refused, so no level answer can be confident."""
+    mirrored left-right, bone dark, 16-bit PNG: (CT, its centroids, X-ray, the three clicks' (u, v) px, parameters
+    with a cache of their own)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=False)
-    folder = tmp_path_factory.mktemp("mirrored-case")
     variant = app.VARIANTS["ii-dark-mirrored-png"]
-    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0, folder)
+    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0,
+                                 tmp_path_factory.mktemp("mirrored-case"))
     detector = app.DETECTORS[variant.detector]
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-    uv = np.asarray(record["truth"]["clicks_uv_px"], float)
     (ct, _, centroids), _, _ = maker.cts["chest"]
-    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    return ct, centroids, xray, np.asarray(record["truth"]["clicks_uv_px"], float), params
+
+
+def _appearance_found(mirrored_display, clicks: Landmarks2D):
+    """The registration state after the spatial stage, where the appearance is decided."""
+    ct, centroids, xray, _, params = mirrored_display
     logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv), uv), p)
+    state = logic.prepare(ct, centroids, xray, clicks, params)
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
+    return state
+
+
+@pytest.mark.slow
+def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_from_the_mirror(sample_case_dir,
+                                                                                              mirrored_display):
+    """The mirrored display with three unnamed clicks: where the clicks put the CT as stored, neither polarity
+    shows an aligned spine (stop 18: the verdict unclear, bone bright taken). Judged on the mirror too, the
+    polarity is found bone dark, and the display mirrored: refused, so no level answer can be confident."""
+    uv = mirrored_display[3]
+    state = _appearance_found(mirrored_display, Landmarks2D([None] * len(uv), uv))
     a = state.appearance
     as_stored = a.scores["at_clicks"]
     assert not verdict_at_clicks(as_stored["scores"], as_stored["fits"])[2]  # the stored image alone: unclear
@@ -180,28 +194,12 @@ def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_fr
 
 @pytest.mark.slow
 def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and_is_refused(sample_case_dir,
-                                                                                          tmp_path_factory):
+                                                                                          mirrored_display):
     """The same mirrored display, no clicks. Refined on the image as stored, the polarity is unclear (stop 16's
     run: bone dark 0.455 against bone bright 0.364, under CLEAR_REFINED_GC); refined on its mirror, bone dark leads
     clearly and the mirror agrees with the image far more than the stored image does: the polarity is taken from
     the mirror, and the display refused as mirrored (no level answer can be proposed)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
-    import appearance as app
-    import bench_appearance as bench
-
-    maker = bench.CaseMaker(second_ct=False)
-    folder = tmp_path_factory.mktemp("mirrored-case-no-clicks")
-    variant = app.VARIANTS["ii-dark-mirrored-png"]
-    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0, folder)
-    detector = app.DETECTORS[variant.detector]
-    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-    (ct, _, centroids), _, _ = maker.cts["chest"]
-    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))), p)
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
-    a = state.appearance
+    a = _appearance_found(mirrored_display, Landmarks2D([], np.zeros((0, 2)))).appearance
     stored, mirrored = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_mirror"]["scores"]
     assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
     assert mirrored["bone-dark"] >= mirrored["bone-bright"] + CLEAR_REFINED_GC
