@@ -191,7 +191,7 @@ class Appearance:
     orientation: str = "as-stored"    # the orientation the image is taken to have (ORIENTATIONS; module docstring)
     orientation_scores: dict | None = None  # orientation -> best signed GC over the (halved) database
     orientation_clear: bool = True    # the stored orientation leads every other clearly (by whatever decided)
-    orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)"
+    orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)", or on the mirror
     orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
     orientation_on_mirror: dict | None = None  # no clicks: {orientation: refined GC} that took the mirror
 
