@@ -22,7 +22,7 @@ from qtpy import QtCore, QtGui, QtWidgets
 from carmreg.logic.geometry.camera import POSE_NAMES
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.composite import MODES
-from carmreg.logic.report.style import MODE_DESCRIPTION, status_ink
+from carmreg.logic.report.style import MODE_DESCRIPTION, status_ink, unsure_name
 
 MAX_HYPOTHESES = 6
 HYPOTHESES_TIP = ("The labellings tried, best first (bold: the image's choice). Score: image dissimilarity + "
@@ -365,10 +365,11 @@ class ResultPanel(QtWidgets.QWidget):
             self.set_accept_enabled(False, "No result yet")
             self.pose_label.setText("No result yet: run the registration (step 4).")
             return
+        check = getattr(result, "level_check", None)
         for row, level in enumerate(result.levels):
             pde = level.get("pde_mm")
             u, v = level["uv_px"]
-            cells = [level["label"], "yes" if level.get("fitted") else "no",
+            cells = [unsure_name(level["label"], check), "yes" if level.get("fitted") else "no",
                      "-" if pde is None else f"{pde:.2f}",
                      f"({u:.1f}, {v:.1f})" + ("" if level.get("in_image", True) else "  outside image")]
             for col, text in enumerate(cells):

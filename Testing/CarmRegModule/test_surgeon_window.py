@@ -145,6 +145,8 @@ def test_a_refused_image_shows_no_level_name_and_offers_none(xray_window):
     assert not rp.accept_button.isEnabled() and not win.act_accept_names.isEnabled()
     assert "refused" in rp.accept_button.toolTip() and not win.assigned_names
     assert sorted(spec.text for spec in win.xray_view.markers().values()) == ["T10", "T11", "T12"]  # the user's
+    projected = [rp.table.item(r, 0).text() for r in range(rp.table.rowCount())]  # the CT's levels, as Slicer's
+    assert projected and all(name.endswith("?") for name in projected)
 
 
 # ------------------------------------------------------------------------------------------- 3. zoom
