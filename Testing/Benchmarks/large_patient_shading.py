@@ -15,13 +15,15 @@ Not a test. For each appearance-benchmark case folder given (a variant already r
 Were the large patient's wrong verdict due to the search and not to the image, the true pose would agree with the
 right polarity while the right polarity's refined poses do not reach it.
 
-3. with ``--search-high-passed``, the same polarity check again with the search itself high-passed: the DRR
-   database, the X-ray's coarse image (``pipeline.spatial_search`` and ``pipeline.image_starts``: the starts) and
-   every DRR and the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``high_pass`` first.
-   An experiment only: the functions are replaced in this process, CarmReg is unchanged::
+3. with ``--search``, the same polarity check again with the search changed: ``high-passed``: the DRR database,
+   the X-ray's coarse image (``pipeline.spatial_search`` and ``pipeline.image_starts``: the starts) and every DRR and
+   the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``high_pass`` first;
+   ``high-passed-starts``: only the starts so; ``tilted-starts``: every start also tilted out of the image plane by
+   +-``--tilt-deg`` about each of the two axes across the beam (ry, rz). An experiment only: the functions are
+   replaced in this process, CarmReg is unchanged::
 
     .venv/bin/python Testing/Benchmarks/large_patient_shading.py /tmp/w/case026/fp-bright-large-tiff \\
-        --cache-dir /tmp/c --search-high-passed
+        --cache-dir /tmp/c --search high-passed
 """
 
 from __future__ import annotations
@@ -65,8 +67,8 @@ def high_pass(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarra
 
 
 @contextlib.contextmanager
-def high_passed_search(sigma_mm: float):
-    """The no-click search high-passed (module docstring, 3.), for the ``with`` block."""
+def changed_search(search: str, sigma_mm: float, tilt_deg: float):
+    """The no-click search changed as ``search`` says (module docstring, 3.), for the ``with`` block."""
     spatial, starts, prepare = pipeline.spatial_search, pipeline.image_starts, image_refine.prepare
     databases = {}
 
@@ -87,8 +89,17 @@ def high_passed_search(sigma_mm: float):
         inner = prepare(metric, high_pass(fixed, mask, sigma_px), mask, dtype=dtype)
         return lambda drrs: inner(high_pass(np.asarray(drrs, float), mask, sigma_px))
 
-    pipeline.spatial_search, pipeline.image_starts, image_refine.prepare = spatial_passed, starts_passed, \
-        prepare_passed
+    def starts_tilted(db, xray_coarse, mask_coarse, count):
+        tilts = ((0.0, 0.0), (tilt_deg, 0.0), (-tilt_deg, 0.0), (0.0, tilt_deg), (0.0, -tilt_deg))
+        return [start + np.array([0, 0, 0, 0, ry, rz]) for start in starts(db, xray_coarse, mask_coarse, count)
+                for ry, rz in tilts]
+
+    if search in ("high-passed", "high-passed-starts"):
+        pipeline.spatial_search, pipeline.image_starts = spatial_passed, starts_passed
+    if search == "high-passed":
+        image_refine.prepare = prepare_passed
+    if search == "tilted-starts":
+        pipeline.image_starts = starts_tilted
     try:
         yield
     finally:
@@ -123,7 +134,7 @@ def verdict(state) -> str:
             f"{refined['bone-dark']:.3f} / {refined['bone-bright']:.3f}")
 
 
-def measure(folder: Path, cache_dir: str, sigma_mm: float, searched: bool) -> str:
+def measure(folder: Path, cache_dir: str, sigma_mm: float, search: str | None, tilt_deg: float) -> str:
     """One table row (module docstring)."""
     truth = json.loads((folder / "truth.json").read_text())
     state, ct, params = polarity_check(folder, cache_dir)
@@ -148,8 +159,8 @@ def measure(folder: Path, cache_dir: str, sigma_mm: float, searched: bool) -> st
     row = (f"| {folder.parent.name} {folder.name} | {true_polarity} | {verdict(state)} "
            f"| {at_truth[0]:.3f} | {at_truth[1]:.3f} | {dark[0]:.3f} / {bright[0]:.3f} "
            f"| {dark[1]:.3f} / {bright[1]:.3f} |")
-    if searched:
-        with high_passed_search(sigma_mm):
+    if search:
+        with changed_search(search, sigma_mm, tilt_deg):
             row += f" {verdict(polarity_check(folder, cache_dir)[0])} |"
     return row
 
@@ -159,15 +170,17 @@ def main(argv=None) -> int:
     parser.add_argument("folders", nargs="+", type=Path, help="case/variant folders with out_none/result.json")
     parser.add_argument("--cache-dir", required=True)
     parser.add_argument("--sigma-mm", type=float, default=20.0, help="the high-pass scale on the detector (mm)")
-    parser.add_argument("--search-high-passed", action="store_true", help="module docstring, 3.")
+    parser.add_argument("--search", choices=("high-passed", "high-passed-starts", "tilted-starts"),
+                        help="the polarity check again with the search changed (module docstring, 3.)")
+    parser.add_argument("--tilt-deg", type=float, default=8.0, help="--search tilted-starts: the tilt (degrees)")
     args = parser.parse_args(argv)
-    searched = " found by the search high-passed, GC dark / bright |" if args.search_high_passed else ""
+    searched = f" found by the search {args.search}, GC dark / bright |" if args.search else ""
     print(f"| case | true polarity | found without clicks, refined GC dark / bright | GC at the true pose "
           f"| high-passed ({args.sigma_mm:g} mm) | refined GC, dark / bright "
           f"| refined poses high-passed, dark / bright |{searched}")
     print("|---|---|---|---|---|---|---|" + ("---|" if searched else ""))
     for folder in args.folders:
-        print(measure(folder, args.cache_dir, args.sigma_mm, args.search_high_passed), flush=True)
+        print(measure(folder, args.cache_dir, args.sigma_mm, args.search, args.tilt_deg), flush=True)
     return 0
 
 
