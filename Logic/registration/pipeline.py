@@ -293,15 +293,11 @@ class CarmRegLogic:
 
         mirrored = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
         a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
-        again = decide_polarity(a.scores["database"], mirrored.scores, p.polarity, xray.bone_dark,
-                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
-                                refined_by=REFINED_ON_MIRROR, fits=mirrored.fits)
+        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR, mirrored.fits)
         if not again.clear:
             return
         again.scores.update(at_clicks=a.scores["at_clicks"], on_mirror=on_mirror)
-        again.set_storage(gc_by_storage)
-        again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
-            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
+        self._database_verdicts(state, again, gc_by_storage)
         again.set_orientation_at_clicks(stored_against_turned(cp, mirrored, MIRROR, again.polarity,
                                                               p.identify.rule).as_dict())
         if again.orientation == MIRROR:
@@ -316,7 +312,7 @@ class CarmRegLogic:
         (``Appearance.set_orientation_on_mirror``). Otherwise the appearance stays as it was, with the mirror's
         evidence recorded (``scores["without_clicks_on_mirror"]``). The levels stage keeps the image as stored (a
         refused image names no level)."""
-        a, p, xray, stored = state.appearance, state.parameters, state.xray, state.image_polarity
+        a, p, stored = state.appearance, state.parameters, state.image_polarity
         if (stored is None or a.clear or p.polarity in POLARITIES
                 or (a.orientation == "as-stored" and a.orientation_clear)):
             return
@@ -326,15 +322,29 @@ class CarmRegLogic:
         gc = {"as-stored": stored.scores[seen], MIRROR: mirrored.scores[seen]}
         if gc[MIRROR] - gc["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
             return
-        again = decide_polarity(a.scores["database"], mirrored.scores, p.polarity, xray.bone_dark,
-                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
-                                refined_by=REFINED_ON_MIRROR_WITHOUT_CLICKS)
+        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR_WITHOUT_CLICKS)
         again.scores.update(without_clicks=a.scores["without_clicks"], without_clicks_on_mirror=on_mirror)
+        self._database_verdicts(state, again, gc_by_storage)
+        again.set_orientation_on_mirror(gc)
+        self._use_appearance(state, again, gc_by_storage)
+
+    @staticmethod
+    def _polarity_again(state: RegistrationState, refined: dict, refined_by: str, fits: dict | None = None):
+        """``decide_polarity`` again, on the database's scores and ``refined`` (measured ``refined_by``; ``fits`` at
+        the clicks), with the user's choice and the file's header as the first verdict had them."""
+        xray = state.xray
+        return decide_polarity(state.appearance.scores["database"], refined, state.parameters.polarity,
+                               xray.bone_dark, xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                               refined_by=refined_by, fits=fits)
+
+    @staticmethod
+    def _database_verdicts(state: RegistrationState, again, gc_by_storage: dict) -> None:
+        """The storage and the database's orientation verdict of a polarity verdict taken ``again`` (the orientation
+        scores of the appearance in use when the polarity is the same, else measured under the new one)."""
+        a, xray = state.appearance, state.xray
         again.set_storage(gc_by_storage)
         again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
             xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
-        again.set_orientation_on_mirror(gc)
-        self._use_appearance(state, again, gc_by_storage)
 
     @classmethod
     def _use_appearance(cls, state: RegistrationState, a, gc_by_storage: dict) -> None:
@@ -364,7 +374,7 @@ class CarmRegLogic:
         taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
         lead: the winner was chosen on the image as stored and as converted, so the evidence leans toward both.
         Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
-        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
         if cp is None or a.orientation != "as-stored" or list(winner.labels) in [list(lb) for lb in cp.labels]:
             return a.trusted
@@ -372,9 +382,7 @@ class CarmRegLogic:
         planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
         self._report("levels", 0.99, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
         extended = judged_also(contexts, cp, planned, p.identify.rule)
-        again = decide_polarity(a.scores["database"], extended.scores, p.polarity, xray.bone_dark,
-                                xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
-                                refined_by=REFINED_AT_CLICKS, fits=extended.fits)
+        again = self._polarity_again(state, extended.scores, REFINED_AT_CLICKS, extended.fits)
         if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
             a.scores["at_clicks_with_winner"] = extended.as_dict()
             return a.trusted

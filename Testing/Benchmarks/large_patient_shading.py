@@ -109,8 +109,7 @@ def changed_search(search: str, sigma_mm: float, tilt_deg: float):
 def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: float) -> tuple[float, float]:
     """(best plain GC, best high-passed GC) of ``fixed`` against ``drrs`` (n, rows, cols)."""
     plain = float(np.max(gc(fixed, drrs, mask)))
-    passed = high_pass(fixed, mask, sigma_px)
-    return plain, max(float(gc(passed, high_pass(d, mask, sigma_px)[None], mask)[0]) for d in drrs)
+    return plain, float(np.max(gc(high_pass(fixed, mask, sigma_px), high_pass(drrs, mask, sigma_px), mask)))
 
 
 def polarity_check(folder: Path, cache_dir: str):
