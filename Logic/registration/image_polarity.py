@@ -36,21 +36,36 @@ class ImagePolarity:
     starts: dict            # {polarity: [(6,) start pose]}
     registered: dict        # {polarity: [LabellingFit refined from the start of the same index]}
     maps: dict              # {polarity: (ny, nz) spatial map (no in-plane turn) the starts' sweep began with}
+    without_shading_mm: float = 0.0  # > 0: every image compared without its shading above this scale (the second
+    #                                  opinion, ``image.shading``): its maps and scores are not the levels stage's
 
     def as_dict(self) -> dict:
-        return {"scores": dict(self.scores),
+        return {"scores": dict(self.scores), "without_shading_mm": self.without_shading_mm,
                 "starts": {p: [[float(x) for x in s] for s in starts] for p, starts in self.starts.items()},
                 "similarity": {p: [f.similarity for f in fits] for p, fits in self.registered.items()}}
 
     def pairs(self, polarity: str) -> list[tuple[np.ndarray, LabellingFit]]:
-        """(start pose, refined fit) of ``polarity``, for ``identify_from_image(registered=...)``."""
+        """(start pose, refined fit) of ``polarity``, for ``identify_from_image(registered=...)``; none when the
+        images were compared without their shading (those fits' scores are not the levels stage's)."""
+        if self.without_shading_mm > 0:
+            return []
         return list(zip(self.starts.get(polarity, []), self.registered.get(polarity, []), strict=True))
 
+    def level_starts(self, polarity: str) -> list[np.ndarray]:
+        """Where the no-click levels stage starts under ``polarity``: this check's own starts (their refinements
+        reused, ``pairs``), or, when it compared the images without their shading, the poses its refinements
+        reached (the levels stage refines them again on the image as it is)."""
+        if self.without_shading_mm > 0:
+            return [f.pose.copy() for f in self.registered.get(polarity, [])]
+        return list(self.starts.get(polarity, []))
 
-def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None) -> ImagePolarity:
+
+def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None,
+                        without_shading_mm: float = 0.0) -> ImagePolarity:
     """Refine every start of every polarity (module docstring). ``contexts``: {polarity: FitContext} whose image is
     the X-ray converted as that polarity; ``starts``: {polarity: [(6,) pose]}, the peaks of ``maps`` (kept for the
-    spatial stage); ``progress(done, total)`` is called before each refinement."""
+    spatial stage); ``progress(done, total)`` is called before each refinement; ``without_shading_mm``: what the
+    contexts' refinements and the maps compared (``ImagePolarity``)."""
     total = sum(len(s) for s in starts.values())
     registered, done = {}, 0
     for polarity, ctx in contexts.items():
@@ -61,4 +76,4 @@ def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None)
             registered[polarity].append(unlabelled_fit(ctx, start))
             done += 1
     scores = {p: max((f.similarity for f in fits), default=float("nan")) for p, fits in registered.items()}
-    return ImagePolarity(scores, {p: list(s) for p, s in starts.items()}, registered, dict(maps))
+    return ImagePolarity(scores, {p: list(s) for p, s in starts.items()}, registered, dict(maps), without_shading_mm)

@@ -31,6 +31,7 @@ from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
+from carmreg.logic.image.shading import without_shading
 from carmreg.logic.registration.cma_search import cma_strategy
 from carmreg.logic.similarity.metrics import prepare
 
@@ -49,6 +50,8 @@ class RefineParameters:
     click_sd_mm: float = 1.5
     rotation_weight: float = 0.002
     seed: int = 1
+    without_shading_mm: float = 0.0   # > 0: GC of the X-ray and each DRR without their shading above this scale
+    #                                   (``image.shading``; detector mm); 0: the images as they are
 
 
 @dataclass
@@ -87,6 +90,16 @@ def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px,
     return (1.0 - score) + p.landmark_weight * landmark + p.rotation_weight * rotation, score, pde.mean(axis=-1)
 
 
+def _scores(p: RefineParameters, fixed: np.ndarray, fmask: np.ndarray, pixel_mm: float):
+    """``metrics.prepare`` against the binned X-ray ``fixed``, both sides without their shading when
+    ``p.without_shading_mm`` asks (``image.shading``). float64: rankings repeat bit for bit."""
+    if p.without_shading_mm <= 0:
+        return prepare(p.metric, fixed, fmask, dtype=np.float64)
+    sigma_px = p.without_shading_mm / pixel_mm
+    inner = prepare(p.metric, without_shading(fixed, fmask, sigma_px), fmask, dtype=np.float64)
+    return lambda drrs: inner(without_shading(np.asarray(drrs, np.float64), fmask, sigma_px))
+
+
 def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndarray, xray_line_integral: np.ndarray,
                      mask: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,
                      params: RefineParameters | None = None, should_stop=None, give_up=None) -> RefineResult:
@@ -103,7 +116,7 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     x0 = np.asarray(start_pose, float).copy()
     es = cma_strategy(x0, p.sigma, p.bounds, p.popsize, p.max_evaluations, p.seed, tolx=1e-3)
     spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it
-    scores = prepare(p.metric, fixed, fmask, dtype=np.float64)  # float64: rankings repeat bit for bit
+    scores = _scores(p, fixed, fmask, small.pixel_spacing_mm[0])
 
     def objective(poses):
         return _objective(level, geometry, small, poses, scores, points_lps_mm, uv_px, p, spans)

@@ -45,7 +45,9 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_DATABASE_POSES,
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
+    REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
+    WITHOUT_SHADING_MM,
     better_storage,
     database_gc,
     decide_polarity,
@@ -54,6 +56,7 @@ from carmreg.logic.image.appearance import (
 )
 from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import EQUALISED, attenuation, bin_image_to, bin_mask_to, coarse_factor
+from carmreg.logic.image.shading import without_shading
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -267,6 +270,7 @@ class CarmRegLogic:
         self._orientation_at_clicks(state, "spatial")
         self._polarity_on_mirror(state, gc_by_storage)
         self._polarity_on_mirror_without_clicks(state, gc_by_storage)
+        self._polarity_without_shading(state, gc_by_storage)
         self._appearance_warnings(state)
         return state.appearance.as_dict()
 
@@ -326,6 +330,28 @@ class CarmRegLogic:
         again.scores.update(without_clicks=a.scores["without_clicks"], without_clicks_on_mirror=on_mirror)
         self._database_verdicts(state, again, gc_by_storage)
         again.set_orientation_on_mirror(gc)
+        self._use_appearance(state, again, gc_by_storage)
+
+    def _polarity_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """Without clicks, a polarity still unclear on an image taken as stored (the user did not set it): the
+        second opinion. Each polarity judged again exactly as by ``_polarity_from_image``, but the X-ray, the database
+        and every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
+        (``image.shading``): on a large patient the shading outweighs the faint bone, and on a tilted view the
+        plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When its verdict is
+        clear (the first verdict's gap, ``CLEAR_REFINED_GC``) it is taken, and the levels stage starts from the
+        poses it reached (``ImagePolarity.level_starts``); otherwise the appearance stays as it was, with the second
+        opinion recorded (``scores["without_clicks_without_shading"]``)."""
+        a, p = state.appearance, state.parameters
+        if state.image_polarity is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
+            return
+        unshaded = self._polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
+        a.scores["without_clicks_without_shading"] = unshaded.as_dict()
+        again = self._polarity_again(state, unshaded.scores, REFINED_WITHOUT_SHADING)
+        if not again.clear:
+            return
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
+        self._database_verdicts(state, again, gc_by_storage)
+        state.image_polarity = unshaded
         self._use_appearance(state, again, gc_by_storage)
 
     @staticmethod
@@ -422,7 +448,7 @@ class CarmRegLogic:
         a, checked = state.appearance, state.image_polarity
         if a.bone_dark:
             return gc_by_storage[a.storage]
-        if checked is not None and state.parameters.metric == "gc":
+        if checked is not None and checked.without_shading_mm == 0 and state.parameters.metric == "gc":
             return checked.maps[a.polarity].reshape(-1)
         return None
 
@@ -462,34 +488,45 @@ class CarmRegLogic:
                           state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
                           p.depth_far_mm, p.depth_step_mm, self._check_cancel, on_labelling)
 
-    def _polarity_from_image(self, state: RegistrationState, gc_by_storage: dict,
-                             orientation: str = "as-stored") -> ImagePolarity:
+    def _polarity_from_image(self, state: RegistrationState, gc_by_storage: dict, orientation: str = "as-stored",
+                             without_shading_mm: float = 0.0) -> ImagePolarity:
         """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``), the
         starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage.
         ``orientation``: judged on that orientation of the image (``oriented_context``; the database's GC map, which
-        is the stored image's, is then not reused)."""
+        is the stored image's, is then not reused). ``without_shading_mm`` > 0: the X-ray, the database and the
+        refinements' DRRs compared without their shading above that scale (``image.shading``)."""
         p, db = state.parameters, state.database
         dark_storage = better_storage(gc_by_storage)
         rows, cols = db.drrs.shape[2:]
         contexts = self._polarity_contexts(state, dark_storage)
         if orientation != "as-stored":
             contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
+        if without_shading_mm > 0:
+            contexts = {polarity: dataclasses.replace(ctx, refine=dataclasses.replace(
+                ctx.refine, without_shading_mm=without_shading_mm)) for polarity, ctx in contexts.items()}
         mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
+        sigma_px = without_shading_mm / db.intrinsics.pixel_spacing_mm[0]
+        if without_shading_mm > 0:
+            db = dataclasses.replace(db, drrs=without_shading(db.drrs, mask_coarse, sigma_px))
         starts, maps = {}, {}
         for polarity, ctx in contexts.items():
-            stored_map = polarity == "bone-dark" and orientation == "as-stored"
+            stored_map = polarity == "bone-dark" and orientation == "as-stored" and without_shading_mm == 0
             known = {"gc": gc_by_storage[dark_storage]} if stored_map else None
             coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
+            if without_shading_mm > 0:
+                coarse = without_shading(coarse, mask_coarse, sigma_px)
             maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
             starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
 
         where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"
+        if without_shading_mm > 0:
+            where += f" without its shading above {without_shading_mm:g} mm"
 
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
                          f"telling bone-dark from bone-bright{where} ({done + 1} of {total})")
 
-        return polarity_from_image(contexts, starts, maps, progress)
+        return polarity_from_image(contexts, starts, maps, progress, without_shading_mm)
 
     def _spatial(self, state: RegistrationState) -> dict:
         appearance = self._decide_appearance(state)
@@ -573,7 +610,7 @@ class CarmRegLogic:
         reused), else computed here (a polarity the user set)."""
         checked, p, db = state.image_polarity, state.parameters, state.database
         if checked is not None and state.appearance.polarity in checked.starts:
-            return list(checked.starts[state.appearance.polarity])
+            return checked.level_starts(state.appearance.polarity)
         rows, cols = db.drrs.shape[2:]
         return image_starts(db, bin_image_to(state.xray_line_integral, state.coarse_factor, (rows, cols)),
                             bin_mask_to(state.mask, state.coarse_factor, (rows, cols)), p.identify.image_starts)

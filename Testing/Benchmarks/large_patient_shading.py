@@ -17,8 +17,11 @@ right polarity while the right polarity's refined poses do not reach it.
 
 3. with ``--search``, the same polarity check again with the search changed: ``high-passed``: the DRR database,
    the X-ray's coarse image (``pipeline.spatial_search`` and ``pipeline.image_starts``: the starts) and every DRR and
-   the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``high_pass`` first;
-   ``high-passed-starts``: only the starts so; ``tilted-starts``: every start also tilted out of the image plane by
+   the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``without_shading`` first;
+   ``high-passed-starts``: only the starts so (the high pass is CarmReg's ``image.shading`` since stop 29, which
+   built the first of these into the pipeline as a second opinion, ``pipeline._polarity_without_shading``; the
+   tables of stop 28 were measured with this script's own copy, its Gaussians reflected at the image's border);
+   ``tilted-starts``: every start also tilted out of the image plane by
    +-``--tilt-deg`` about each of the two axes across the beam (ry, rz). An experiment only: the functions are
    replaced in this process, CarmReg is unchanged::
 
@@ -36,11 +39,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import CarmPose
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
+from carmreg.logic.image.shading import without_shading
 from carmreg.logic.io.landmarks import Landmarks2D, read_landmarks_3d
 from carmreg.logic.io.volumes import load_volume
 from carmreg.logic.io.xray import load_xray
@@ -57,15 +60,6 @@ POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 REFINE_PIXEL_MM = RegistrationParameters().refine_coarse.detector_pixel_mm  # the image-alone refinement's pixel
 
 
-def high_pass(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``image`` (or a stack of images, the last two axes) minus its Gaussian-weighted mean over the field (module
-    docstring), 0 outside ``mask``."""
-    m = mask.astype(float)
-    sigma = (0,) * (np.ndim(image) - 2) + (sigma_px, sigma_px)
-    local = ndimage.gaussian_filter(image * m, sigma) / np.maximum(ndimage.gaussian_filter(m, sigma_px), 1e-6)
-    return np.where(mask, image - local, 0.0).astype(np.asarray(image).dtype)
-
-
 @contextlib.contextmanager
 def changed_search(search: str, sigma_mm: float, tilt_deg: float):
     """The no-click search changed as ``search`` says (module docstring, 3.), for the ``with`` block."""
@@ -75,8 +69,8 @@ def changed_search(search: str, sigma_mm: float, tilt_deg: float):
     def passed(db, xray_coarse, mask_coarse):
         sigma_px = sigma_mm / db.intrinsics.pixel_spacing_mm[0]
         if id(db) not in databases:
-            databases[id(db)] = dataclasses.replace(db, drrs=high_pass(db.drrs, mask_coarse, sigma_px))
-        return databases[id(db)], high_pass(xray_coarse, mask_coarse, sigma_px)
+            databases[id(db)] = dataclasses.replace(db, drrs=without_shading(db.drrs, mask_coarse, sigma_px))
+        return databases[id(db)], without_shading(xray_coarse, mask_coarse, sigma_px)
 
     def spatial_passed(db, xray_coarse, mask_coarse, metric="gc", metrics=("gc",), known=None):
         return spatial(*passed(db, xray_coarse, mask_coarse), mask_coarse, metric, metrics, None)
@@ -86,8 +80,8 @@ def changed_search(search: str, sigma_mm: float, tilt_deg: float):
 
     def prepare_passed(metric, fixed, mask, dtype=np.float64):
         sigma_px = sigma_mm / REFINE_PIXEL_MM
-        inner = prepare(metric, high_pass(fixed, mask, sigma_px), mask, dtype=dtype)
-        return lambda drrs: inner(high_pass(np.asarray(drrs, float), mask, sigma_px))
+        inner = prepare(metric, without_shading(fixed, mask, sigma_px), mask, dtype=dtype)
+        return lambda drrs: inner(without_shading(np.asarray(drrs, float), mask, sigma_px))
 
     def starts_tilted(db, xray_coarse, mask_coarse, count):
         tilts = ((0.0, 0.0), (tilt_deg, 0.0), (-tilt_deg, 0.0), (0.0, tilt_deg), (0.0, -tilt_deg))
@@ -109,7 +103,8 @@ def changed_search(search: str, sigma_mm: float, tilt_deg: float):
 def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: float) -> tuple[float, float]:
     """(best plain GC, best high-passed GC) of ``fixed`` against ``drrs`` (n, rows, cols)."""
     plain = float(np.max(gc(fixed, drrs, mask)))
-    return plain, float(np.max(gc(high_pass(fixed, mask, sigma_px), high_pass(drrs, mask, sigma_px), mask)))
+    unshaded = gc(without_shading(fixed, mask, sigma_px), without_shading(drrs, mask, sigma_px), mask)
+    return plain, float(np.max(unshaded))
 
 
 def polarity_check(folder: Path, cache_dir: str):
