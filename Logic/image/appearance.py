@@ -113,6 +113,17 @@ stored does under that polarity, the display is mirrored: the mirror's verdict i
 ``CLEAR_REFINED_GC``) and the image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes
 but the record.
 
+A polarity still unclear without clicks, on an image taken as stored (the user did not set it), gets a second
+opinion (stop 29, ``REFINED_WITHOUT_SHADING``, ``pipeline._polarity_without_shading``): the same search with the
+X-ray, the database and every DRR compared without their shading above ``WITHOUT_SHADING_MM``
+(``image.shading``). The first verdict's misses were failures of its search, not of the image (stop 28,
+``Testing/Benchmarks/large_patient_shading.py``): a large patient's scatter shading outweighing the faint bone, a
+view tilted out of the image plane whose plain map's peaks lay away from the true pose. Its verdict is taken when
+clear at the first verdict's gap (``CLEAR_REFINED_GC``; ``calibrate_without_shading``: on every image of the tune
+half its wrong verdicts led by at most 0.081, and where it was asked it put right 4 of 6 wrong first verdicts
+clearly), and also, unclear, when it leads with the other polarity (on the tune half it was right on each of its
+5 such disagreements; unclear, no answer is proposed either way). Otherwise nothing changes but the record.
+
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
 user's polarity the image clearly contradicts, keeps any level answer from being confident
