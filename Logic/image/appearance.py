@@ -118,11 +118,14 @@ opinion (stop 29, ``REFINED_WITHOUT_SHADING``, ``pipeline._polarity_without_shad
 X-ray, the database and every DRR compared without their shading above ``WITHOUT_SHADING_MM``
 (``image.shading``). The first verdict's misses were failures of its search, not of the image (stop 28,
 ``Testing/Benchmarks/large_patient_shading.py``): a large patient's scatter shading outweighing the faint bone, a
-view tilted out of the image plane whose plain map's peaks lay away from the true pose. Its verdict is taken when
-clear at the first verdict's gap (``CLEAR_REFINED_GC``; ``calibrate_without_shading``: on every image of the tune
-half its wrong verdicts led by at most 0.081, and where it was asked it put right 4 of 6 wrong first verdicts
-clearly), and also, unclear, when it leads with the other polarity (on the tune half it was right on each of its
-5 such disagreements; unclear, no answer is proposed either way). Otherwise nothing changes but the record.
+view tilted out of the image plane whose plain map's peaks lay away from the true pose. When it leads with the
+other polarity, its polarity is used (``Appearance.as_second_opinion``), but **never called clear**, so no level
+answer is proposed on it: on the tune half (``calibrate_without_shading``) it was right on each of its 5
+disagreements with the first verdict, and its wrong verdicts over all 60 tune images led by at most 0.081; but a
+first version that also let a clear second opinion propose levels proposed two answers one level off on the
+unseen cases (a low-dose intensifier and a large patient, the polarity right): where only the image without its
+shading shows the polarity, the image as it is does not name levels reliably. When it agrees with the first
+verdict, nothing changes but the record.
 
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user
 overrode it are kept in ``Appearance`` (``result.json["appearance"]``). An unclear polarity or orientation, or a
@@ -216,6 +219,15 @@ class Appearance:
     def trusted(self) -> bool:
         """A level answer may be confident (``trusted_appearance``)."""
         return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
+
+    def as_second_opinion(self, first: Appearance) -> None:
+        """This verdict, found on the image without its shading (``REFINED_WITHOUT_SHADING``), used instead of
+        ``first`` (the image as it is: unclear, leading with the other polarity). Never clear (module docstring)."""
+        self.clear = False
+        self.note = (f"{self.polarity}, found only from the image without its shading above {WITHOUT_SHADING_MM:g} "
+                     f"mm (GC gap {self.clarity_gc:.3f} there; as it is, the image leaned {first.polarity} by "
+                     f"{first.clarity_gc:.3f}): not clear, so no level answer is proposed; set the polarity by hand "
+                     "if the overlay looks inverted")
 
     def take_polarity_verdict(self, again: Appearance, evidence: str, threshold_gc: float) -> None:
         """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with

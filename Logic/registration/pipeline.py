@@ -337,19 +337,20 @@ class CarmRegLogic:
         second opinion. Each polarity judged again exactly as by ``_polarity_from_image``, but the X-ray, the database
         and every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
         (``image.shading``): on a large patient the shading outweighs the faint bone, and on a tilted view the
-        plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). Its verdict is
-        taken when clear (the first verdict's gap, ``CLEAR_REFINED_GC``) or when it leads with the other polarity
-        (then unclear: on the tune half each such verdict was right, 5 of 5, where the first was wrong), and the
-        levels stage then starts from the poses it reached (``ImagePolarity.level_starts``); otherwise the
-        appearance stays as it was, with the second opinion recorded (``scores["without_clicks_without_shading"]``)."""
+        plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When it leads with
+        the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``: no level answer is
+        proposed on it), and the levels stage starts from the poses it reached (``ImagePolarity.level_starts``);
+        otherwise the appearance stays as it was. Either way ``scores["without_clicks_without_shading"]`` records
+        it."""
         a, p = state.appearance, state.parameters
         if state.image_polarity is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
             return
         unshaded = self._polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
         a.scores["without_clicks_without_shading"] = unshaded.as_dict()
         again = self._polarity_again(state, unshaded.scores, REFINED_WITHOUT_SHADING)
-        if not again.clear and again.polarity == a.polarity:
+        if again.polarity == a.polarity:
             return
+        again.as_second_opinion(a)
         again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
         self._database_verdicts(state, again, gc_by_storage)
         state.image_polarity = unshaded
