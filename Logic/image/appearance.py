@@ -120,11 +120,11 @@ X-ray, the database and every DRR compared without their shading above ``WITHOUT
 ``Testing/Benchmarks/large_patient_shading.py``): a large patient's scatter shading outweighing the faint bone, a
 view tilted out of the image plane whose plain map's peaks lay away from the true pose. When it leads with the
 other polarity, its polarity is used (``Appearance.as_second_opinion``), but **never called clear**, so no level
-answer is proposed on it: on the tune half (``calibrate_without_shading``) it was right on each of its 5
-disagreements with the first verdict, and its wrong verdicts over all 60 tune images led by at most 0.081; but a
-first version that also let a clear second opinion propose levels proposed two answers one level off on the
-unseen cases (a low-dose intensifier and a large patient, the polarity right): where only the image without its
-shading shows the polarity, the image as it is does not name levels reliably. When it agrees with the first
+answer is proposed on it: on the tune half (``Testing/Benchmarks/measure_without_shading.py``) it was right on
+each of its 5 disagreements with the first verdict, and its wrong verdicts over all 60 tune images led by at most
+0.081; but a first version that also let a clear second opinion propose levels proposed two answers one level off
+on the unseen cases (a low-dose intensifier and a large patient, the polarity right): where only the image without
+its shading shows the polarity, the image as it is does not name levels reliably. When it agrees with the first
 verdict, nothing changes but the record.
 
 The decision, how clear it was, the scores it rests on, what the file's header said and whether the user

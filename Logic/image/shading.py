@@ -21,13 +21,17 @@ from scipy import ndimage
 
 def without_shading(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
     """``I_hp`` of ``image`` (module docstring): (rows, cols), or a stack whose last two axes are (rows, cols) under
-    one ``mask`` (rows, cols); ``sigma_px`` the scale in the images' pixels. 0 outside the mask; the input's dtype
-    when floating, else float32."""
+    one ``mask`` (rows, cols); ``sigma_px`` the scale in the images' pixels. 0 outside the mask. Computed and
+    returned in the input's dtype when floating (a float32 DRR database: a third of the float64 time), else
+    float32."""
     image = np.asarray(image)
-    dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float32
+    dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.dtype(np.float32)
     m = np.asarray(mask, bool)
     weight = ndimage.gaussian_filter(m.astype(np.float64), sigma_px, mode="constant")
     sigma = (0.0,) * (image.ndim - 2) + (sigma_px, sigma_px)
-    local = ndimage.gaussian_filter(np.where(m, image, 0.0).astype(np.float64), sigma, mode="constant")
-    local /= np.maximum(weight, 1e-6)
-    return np.where(m, image - local, 0.0).astype(dtype)
+    work = np.where(m, image, 0).astype(dtype, copy=False)
+    local = ndimage.gaussian_filter(work, sigma, mode="constant")
+    local *= (1.0 / np.maximum(weight, 1e-6)).astype(dtype)
+    np.subtract(work, local, out=local)
+    local[..., ~m] = 0
+    return local

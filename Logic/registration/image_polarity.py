@@ -37,7 +37,7 @@ class ImagePolarity:
     registered: dict        # {polarity: [LabellingFit refined from the start of the same index]}
     maps: dict              # {polarity: (ny, nz) spatial map (no in-plane turn) the starts' sweep began with}
     without_shading_mm: float = 0.0  # > 0: every image compared without its shading above this scale (the second
-    #                                  opinion, ``image.shading``): its maps and scores are not the levels stage's
+    #                                  opinion, ``image.shading``)
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores), "without_shading_mm": self.without_shading_mm,
@@ -45,19 +45,9 @@ class ImagePolarity:
                 "similarity": {p: [f.similarity for f in fits] for p, fits in self.registered.items()}}
 
     def pairs(self, polarity: str) -> list[tuple[np.ndarray, LabellingFit]]:
-        """(start pose, refined fit) of ``polarity``, for ``identify_from_image(registered=...)``; none when the
-        images were compared without their shading (those fits' scores are not the levels stage's)."""
-        if self.without_shading_mm > 0:
-            return []
+        """(start pose, refined fit) of ``polarity``, for ``identify_from_image(registered=...)`` on the same image,
+        compared the same way (``without_shading_mm``)."""
         return list(zip(self.starts.get(polarity, []), self.registered.get(polarity, []), strict=True))
-
-    def level_starts(self, polarity: str) -> list[np.ndarray]:
-        """Where the no-click levels stage starts under ``polarity``: this check's own starts (their refinements
-        reused, ``pairs``), or, when it compared the images without their shading, the poses its refinements
-        reached (the levels stage refines them again on the image as it is)."""
-        if self.without_shading_mm > 0:
-            return [f.pose.copy() for f in self.registered.get(polarity, [])]
-        return list(self.starts.get(polarity, []))
 
 
 def polarity_from_image(contexts: dict, starts: dict, maps: dict, progress=None,

@@ -339,9 +339,9 @@ class CarmRegLogic:
         (``image.shading``): on a large patient the shading outweighs the faint bone, and on a tilted view the
         plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When it leads with
         the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``: no level answer is
-        proposed on it), and the levels stage starts from the poses it reached (``ImagePolarity.level_starts``);
-        otherwise the appearance stays as it was. Either way ``scores["without_clicks_without_shading"]`` records
-        it."""
+        proposed on it), and the levels stage compares the images the same way, reusing its refinements
+        (``_levels``); otherwise the appearance stays as it was. Either way
+        ``scores["without_clicks_without_shading"]`` records it."""
         a, p = state.appearance, state.parameters
         if state.image_polarity is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
             return
@@ -588,7 +588,10 @@ class CarmRegLogic:
         ctx.xray_equalised = attenuation(state.xray.pixels, state.mask, bone_dark, EQUALISED)  # ``agreement``
         appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
-            reuse = state.image_polarity.pairs(state.appearance.polarity) if state.image_polarity else ()
+            checked = state.image_polarity
+            if checked is not None and checked.without_shading_mm > 0:  # the second opinion's polarity: its way
+                ctx.refine = dataclasses.replace(ctx.refine, without_shading_mm=checked.without_shading_mm)
+            reuse = checked.pairs(state.appearance.polarity) if checked else ()
             ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
                                         appearance_clear, registered=reuse)
         else:
@@ -612,7 +615,7 @@ class CarmRegLogic:
         reused), else computed here (a polarity the user set)."""
         checked, p, db = state.image_polarity, state.parameters, state.database
         if checked is not None and state.appearance.polarity in checked.starts:
-            return checked.level_starts(state.appearance.polarity)
+            return list(checked.starts[state.appearance.polarity])
         rows, cols = db.drrs.shape[2:]
         return image_starts(db, bin_image_to(state.xray_line_integral, state.coarse_factor, (rows, cols)),
                             bin_mask_to(state.mask, state.coarse_factor, (rows, cols)), p.identify.image_starts)

@@ -1,22 +1,17 @@
-"""Check the no-click second opinion's clear gap (the first verdict's, ``CLEAR_REFINED_GC``) on the tune half.
+"""The no-click polarity's second opinion, without the image's shading, measured on every image of a half.
 
 Not a test: run it by hand on appearance-benchmark case folders already registered without clicks
 (``bench_appearance.py --modes none``: ``out_none/result.json`` and ``truth.json`` beside the X-ray)::
 
-    .venv/bin/python Testing/Benchmarks/calibrate_without_shading.py /tmp/w/case0*/* --cache-dir /tmp/c \\
+    .venv/bin/python Testing/Benchmarks/measure_without_shading.py /tmp/w/case0*/* --cache-dir /tmp/c \\
         --out /tmp/without_shading_tune.json
 
 Without clicks, a polarity still unclear on an image taken as stored gets a second opinion
 (``pipeline._polarity_without_shading``): the same image-alone search with every image compared without its
-shading above ``WITHOUT_SHADING_MM`` (``image.shading``), its verdict taken when it leads by the clear gap. A wrong
-polarity called clear there is the danger (stop 28's partial experiments pushed a large patient's wrong polarity
-past the first verdict's gap), so the gap is judged on the second opinion measured on **every** image of the tune
-half (even case index), not only on those it was asked about (``asked``: the run recorded it). Printed: the
-smallest gap on ``GRID`` above every wrong verdict's lead that keeps the most right verdicts clear where asked
-(``choose``), and the counts at the gap in use. Stop 29 kept the first verdict's gap (0.22) rather than the
-smallest admissible (0.09): the tune half's wrong second opinions led by at most 0.081 (a large patient; a
-mirrored display 0.059), two samples of how far a wrong one can lead, and every right one asked about but a
-mirrored display's led by 0.31 or more. Counted again, unchanged, on the report half (``--threshold``).
+shading above ``WITHOUT_SHADING_MM`` (``image.shading``). Where it leads with the other polarity it is used, never
+clear. Its danger is a wrong lead, so it is measured here on **every** image (``asked``: whether the run asked it,
+as its ``result.json`` records), with the first verdict as the run recorded it. Printed: per image, and the counts:
+where asked, the disagreements right / wrong; over every image, the second opinion's wrong leads and the largest.
 """
 
 from __future__ import annotations
@@ -35,8 +30,6 @@ from carmreg.logic.io.volumes import load_volume
 from carmreg.logic.io.xray import load_xray
 from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
-
-GRID = tuple(round(0.01 * k, 2) for k in range(5, 41))
 
 
 def state_after_database(folder: Path, cache_dir: str):
@@ -79,29 +72,19 @@ def measure(folder: Path, cache_dir: str) -> dict:
             "second_opinion_runs": first["asked"], "scores": unshaded.scores, "polarity": seen, "gap": gap}
 
 
-def counts(rows: list[dict], threshold: float) -> dict:
-    """Clear wrong / clear right second opinions over every image, and over those it would be asked about."""
-    c = {"images": len(rows), "clear_wrong": 0, "clear_right": 0, "asked": 0, "asked_clear_right": 0,
-         "asked_clear_wrong": 0, "asked_first_wrong": 0}
-    for r in rows:
-        clear, right = r["gap"] >= threshold, r["polarity"] == r["truth"]
-        c["clear_wrong"] += clear and not right
-        c["clear_right"] += clear and right
-        if r["second_opinion_runs"]:
-            c["asked"] += 1
-            c["asked_first_wrong"] += r["first"]["polarity"] != r["truth"]
-            c["asked_clear_right"] += clear and right
-            c["asked_clear_wrong"] += clear and not right
-    return c
-
-
-def choose(tune: list[dict]) -> float:
-    """No clear wrong verdict on any tune image, then the most clear right ones where asked, then the lower."""
-    def rank(threshold: float) -> tuple:
-        c = counts(tune, threshold)
-        return c["clear_wrong"], -c["asked_clear_right"], -c["clear_right"], threshold
-
-    return min(GRID, key=rank)
+def counts(rows: list[dict]) -> dict:
+    """Where asked: the first verdict wrong, the second opinion disagreeing right / wrong. Over every image: the
+    second opinion wrong, its largest wrong lead, and clear (at the first verdict's gap) and right."""
+    asked = [r for r in rows if r["second_opinion_runs"]]
+    disagree = [r for r in asked if r["polarity"] != r["first"]["polarity"]]
+    wrong = [r for r in rows if r["polarity"] != r["truth"]]
+    return {"images": len(rows), "asked": len(asked),
+            "asked_first_wrong": sum(r["first"]["polarity"] != r["truth"] for r in asked),
+            "asked_disagree_right": sum(r["polarity"] == r["truth"] for r in disagree),
+            "asked_disagree_wrong": sum(r["polarity"] != r["truth"] for r in disagree),
+            "second_wrong": len(wrong), "second_wrong_max_lead": max((r["gap"] for r in wrong), default=0.0),
+            "second_clear_right": sum(r["gap"] >= CLEAR_REFINED_GC and r["polarity"] == r["truth"] for r in rows),
+            "first_clear_right": sum(r["first"]["clear"] and r["first"]["polarity"] == r["truth"] for r in rows)}
 
 
 def table(rows: list[dict]) -> str:
@@ -124,7 +107,6 @@ def main(argv=None) -> int:
     parser.add_argument("--cache-dir", required=True)
     parser.add_argument("--out", type=Path, required=True, help="JSON of the measured rows (read back if it exists "
                                                                  "and no folder is given)")
-    parser.add_argument("--threshold", type=float, help="count this gap instead of choosing one (report half)")
     parser.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
     if args.folders:
@@ -135,10 +117,7 @@ def main(argv=None) -> int:
     else:
         rows = json.loads(args.out.read_text())["rows"]
     print(table(rows))
-    chosen = args.threshold if args.threshold is not None else choose(rows)
-    for name, threshold in (("chosen" if args.threshold is None else "given", chosen),
-                            ("current", CLEAR_REFINED_GC)):
-        print(f"\n{name} gap {threshold:.2f}: {counts(rows, threshold)}")
+    print(f"\n{counts(rows)}")
     return 0
 
 
