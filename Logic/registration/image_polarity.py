@@ -35,7 +35,8 @@ class ImagePolarity:
     scores: dict            # {polarity: max refined GC over its starts}
     starts: dict            # {polarity: [(6,) start pose]}
     registered: dict        # {polarity: [LabellingFit refined from the start of the same index]}
-    maps: dict              # {polarity: (ny, nz) spatial map (no in-plane turn) the starts' sweep began with}
+    maps: dict              # {polarity: (ny, nz) spatial map (no in-plane turn) the starts' sweep began with;
+    #                         none without shading: only the plain image's map serves the spatial stage}
     without_shading_mm: float = 0.0  # > 0: every image compared without its shading above this scale (the second
     #                                  opinion, ``image.shading``)
 

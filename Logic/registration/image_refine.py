@@ -92,12 +92,13 @@ def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px,
 
 def _scores(p: RefineParameters, fixed: np.ndarray, fmask: np.ndarray, pixel_mm: float):
     """``metrics.prepare`` against the binned X-ray ``fixed``, both sides without their shading when
-    ``p.without_shading_mm`` asks (``image.shading``). float64: rankings repeat bit for bit."""
+    ``p.without_shading_mm`` asks (``image.shading``; the DRRs' shading in float32, deterministic and twice as fast).
+    The scores in float64: rankings repeat bit for bit."""
     if p.without_shading_mm <= 0:
         return prepare(p.metric, fixed, fmask, dtype=np.float64)
     sigma_px = p.without_shading_mm / pixel_mm
     inner = prepare(p.metric, without_shading(fixed, fmask, sigma_px), fmask, dtype=np.float64)
-    return lambda drrs: inner(without_shading(np.asarray(drrs, np.float64), fmask, sigma_px))
+    return lambda drrs: inner(without_shading(np.asarray(drrs, np.float32), fmask, sigma_px))
 
 
 def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndarray, xray_line_integral: np.ndarray,

@@ -515,9 +515,11 @@ class CarmRegLogic:
             stored_map = polarity == "bone-dark" and orientation == "as-stored" and without_shading_mm == 0
             known = {"gc": gc_by_storage[dark_storage]} if stored_map else None
             coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
-            if without_shading_mm > 0:
+            if without_shading_mm > 0:  # no map kept: only the plain image's serves the spatial stage
                 coarse = without_shading(coarse, mask_coarse, sigma_px)
-            maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,), known=known).maps[p.metric]
+            else:
+                maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
+                                                known=known).maps[p.metric]
             starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
 
         where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"
