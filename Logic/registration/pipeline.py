@@ -497,30 +497,15 @@ class CarmRegLogic:
         ``orientation``: judged on that orientation of the image (``oriented_context``; the database's GC map, which
         is the stored image's, is then not reused). ``without_shading_mm`` > 0: the X-ray, the database and the
         refinements' DRRs compared without their shading above that scale (``image.shading``)."""
-        p, db = state.parameters, state.database
         dark_storage = better_storage(gc_by_storage)
-        rows, cols = db.drrs.shape[2:]
         contexts = self._polarity_contexts(state, dark_storage)
         if orientation != "as-stored":
             contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
         if without_shading_mm > 0:
             contexts = {polarity: dataclasses.replace(ctx, refine=dataclasses.replace(
                 ctx.refine, without_shading_mm=without_shading_mm)) for polarity, ctx in contexts.items()}
-        mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
-        sigma_px = without_shading_mm / db.intrinsics.pixel_spacing_mm[0]
-        if without_shading_mm > 0:
-            db = dataclasses.replace(db, drrs=without_shading(db.drrs, mask_coarse, sigma_px))
-        starts, maps = {}, {}
-        for polarity, ctx in contexts.items():
-            stored_map = polarity == "bone-dark" and orientation == "as-stored" and without_shading_mm == 0
-            known = {"gc": gc_by_storage[dark_storage]} if stored_map else None
-            coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
-            if without_shading_mm > 0:  # no map kept: only the plain image's serves the spatial stage
-                coarse = without_shading(coarse, mask_coarse, sigma_px)
-            else:
-                maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
-                                                known=known).maps[p.metric]
-            starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
+        stored_gc = gc_by_storage[dark_storage] if orientation == "as-stored" else None
+        starts, maps = self._image_alone_starts(state, contexts, stored_gc, without_shading_mm)
 
         where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"
         if without_shading_mm > 0:
@@ -531,6 +516,31 @@ class CarmRegLogic:
                          f"telling bone-dark from bone-bright{where} ({done + 1} of {total})")
 
         return polarity_from_image(contexts, starts, maps, progress, without_shading_mm)
+
+    @staticmethod
+    def _image_alone_starts(state: RegistrationState, contexts: dict, stored_gc: np.ndarray | None,
+                            without_shading_mm: float) -> tuple[dict, dict]:
+        """({polarity: [(6,) start]}, {polarity: spatial map}) of each context's image on the coarse database
+        (``image_starts``, ``spatial_search``). ``stored_gc``: the bone-dark image's map when already computed
+        (``database_gc``), else None. ``without_shading_mm`` > 0: the database and the images less their shading,
+        and no map (only the plain image's serves the spatial stage)."""
+        p, db = state.parameters, state.database
+        rows, cols = db.drrs.shape[2:]
+        mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
+        sigma_px = without_shading_mm / db.intrinsics.pixel_spacing_mm[0]
+        if without_shading_mm > 0:
+            db = dataclasses.replace(db, drrs=without_shading(db.drrs, mask_coarse, sigma_px))
+        starts, maps = {}, {}
+        for polarity, ctx in contexts.items():
+            coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
+            if without_shading_mm > 0:
+                coarse = without_shading(coarse, mask_coarse, sigma_px)
+            else:
+                known = {"gc": stored_gc} if polarity == "bone-dark" and stored_gc is not None else None
+                maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
+                                                known=known).maps[p.metric]
+            starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
+        return starts, maps
 
     def _spatial(self, state: RegistrationState) -> dict:
         appearance = self._decide_appearance(state)
