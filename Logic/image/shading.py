@@ -19,19 +19,31 @@ import numpy as np
 from scipy import ndimage
 
 
-def without_shading(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``I_hp`` of ``image`` (module docstring): (rows, cols), or a stack whose last two axes are (rows, cols) under
-    one ``mask`` (rows, cols); ``sigma_px`` the scale in the images' pixels. 0 outside the mask. Computed and
-    returned in the input's dtype when floating (a float32 DRR database: a third of the float64 time), else
-    float32."""
-    image = np.asarray(image)
-    dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.dtype(np.float32)
+def shading_remover(mask: np.ndarray, sigma_px: float):
+    """``remove(image)`` -> ``I_hp`` (module docstring) under one ``mask`` (rows, cols) and scale ``sigma_px`` (the
+    images' pixels), with what depends on the mask alone (``G_s * m``) computed once: for a refinement that removes
+    the shading of every DRR batch it renders. ``image``: (rows, cols) or a stack whose last two axes are (rows,
+    cols); 0 outside the mask. Computed and returned in the input's dtype when floating (a float32 DRR database: a
+    third of the float64 time), else float32."""
     m = np.asarray(mask, bool)
+    outside = ~m
     weight = ndimage.gaussian_filter(m.astype(np.float64), sigma_px, mode="constant")
-    sigma = (0.0,) * (image.ndim - 2) + (sigma_px, sigma_px)
-    work = np.where(m, image, 0).astype(dtype, copy=False)
-    local = ndimage.gaussian_filter(work, sigma, mode="constant")
-    local *= (1.0 / np.maximum(weight, 1e-6)).astype(dtype)
-    np.subtract(work, local, out=local)
-    local[..., ~m] = 0
-    return local
+    inverse = 1.0 / np.maximum(weight, 1e-6)
+
+    def remove(image: np.ndarray) -> np.ndarray:
+        image = np.asarray(image)
+        dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.dtype(np.float32)
+        sigma = (0.0,) * (image.ndim - 2) + (sigma_px, sigma_px)
+        work = np.where(m, image, 0).astype(dtype, copy=False)
+        local = ndimage.gaussian_filter(work, sigma, mode="constant")
+        local *= inverse.astype(dtype)
+        np.subtract(work, local, out=local)
+        local[..., outside] = 0
+        return local
+
+    return remove
+
+
+def without_shading(image: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``I_hp`` of ``image`` (module docstring), once (``shading_remover`` for many images under one mask)."""
+    return shading_remover(mask, sigma_px)(image)

@@ -31,7 +31,7 @@ from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
-from carmreg.logic.image.shading import without_shading
+from carmreg.logic.image.shading import shading_remover
 from carmreg.logic.registration.cma_search import cma_strategy
 from carmreg.logic.similarity.metrics import prepare
 
@@ -96,9 +96,9 @@ def _scores(p: RefineParameters, fixed: np.ndarray, fmask: np.ndarray, pixel_mm:
     The scores in float64: rankings repeat bit for bit."""
     if p.without_shading_mm <= 0:
         return prepare(p.metric, fixed, fmask, dtype=np.float64)
-    sigma_px = p.without_shading_mm / pixel_mm
-    inner = prepare(p.metric, without_shading(fixed, fmask, sigma_px), fmask, dtype=np.float64)
-    return lambda drrs: inner(without_shading(np.asarray(drrs, np.float32), fmask, sigma_px))
+    remove = shading_remover(fmask, p.without_shading_mm / pixel_mm)
+    inner = prepare(p.metric, remove(fixed), fmask, dtype=np.float64)
+    return lambda drrs: inner(remove(np.asarray(drrs, np.float32)))
 
 
 def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndarray, xray_line_integral: np.ndarray,

@@ -174,6 +174,12 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> La
     return _refine_from(ctx, fit, np.asarray(start_pose, float))
 
 
+def unshaded_context(ctx: FitContext, without_shading_mm: float) -> FitContext:
+    """``ctx`` whose image refinements compare the X-ray and each DRR without their shading above
+    ``without_shading_mm`` (``RefineParameters.without_shading_mm``, ``image.shading``)."""
+    return dataclasses.replace(ctx, refine=dataclasses.replace(ctx.refine, without_shading_mm=without_shading_mm))
+
+
 def unlabelled_fit(ctx: FitContext, start_pose: np.ndarray, shift: int = 0) -> LabellingFit:
     """One image refinement without clicks (no landmark term) from ``start_pose``: a hypothesis of the image alone."""
     return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start_pose)

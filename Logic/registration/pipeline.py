@@ -56,7 +56,7 @@ from carmreg.logic.image.appearance import (
 )
 from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import EQUALISED, attenuation, bin_image_to, bin_mask_to, coarse_factor
-from carmreg.logic.image.shading import without_shading
+from carmreg.logic.image.shading import shading_remover
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -81,7 +81,7 @@ from carmreg.logic.registration.fine import fine_search
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
 from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.image_starts import image_starts
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, plan_labelling
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, plan_labelling, unshaded_context
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
@@ -450,7 +450,7 @@ class CarmRegLogic:
         a, checked = state.appearance, state.image_polarity
         if a.bone_dark:
             return gc_by_storage[a.storage]
-        if checked is not None and checked.without_shading_mm == 0 and state.parameters.metric == "gc":
+        if checked is not None and a.polarity in checked.maps and state.parameters.metric == "gc":
             return checked.maps[a.polarity].reshape(-1)
         return None
 
@@ -502,8 +502,7 @@ class CarmRegLogic:
         if orientation != "as-stored":
             contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
         if without_shading_mm > 0:
-            contexts = {polarity: dataclasses.replace(ctx, refine=dataclasses.replace(
-                ctx.refine, without_shading_mm=without_shading_mm)) for polarity, ctx in contexts.items()}
+            contexts = {polarity: unshaded_context(ctx, without_shading_mm) for polarity, ctx in contexts.items()}
         stored_gc = gc_by_storage[dark_storage] if orientation == "as-stored" else None
         starts, maps = self._image_alone_starts(state, contexts, stored_gc, without_shading_mm)
 
@@ -527,14 +526,14 @@ class CarmRegLogic:
         p, db = state.parameters, state.database
         rows, cols = db.drrs.shape[2:]
         mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
-        sigma_px = without_shading_mm / db.intrinsics.pixel_spacing_mm[0]
+        remove = shading_remover(mask_coarse, without_shading_mm / db.intrinsics.pixel_spacing_mm[0])
         if without_shading_mm > 0:
-            db = dataclasses.replace(db, drrs=without_shading(db.drrs, mask_coarse, sigma_px))
+            db = dataclasses.replace(db, drrs=remove(db.drrs))
         starts, maps = {}, {}
         for polarity, ctx in contexts.items():
             coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
             if without_shading_mm > 0:
-                coarse = without_shading(coarse, mask_coarse, sigma_px)
+                coarse = remove(coarse)
             else:
                 known = {"gc": stored_gc} if polarity == "bone-dark" and stored_gc is not None else None
                 maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
@@ -602,7 +601,7 @@ class CarmRegLogic:
         if len(clicks.labels) == 0:
             checked = state.image_polarity
             if checked is not None and checked.without_shading_mm > 0:  # the second opinion's polarity: its way
-                ctx.refine = dataclasses.replace(ctx.refine, without_shading_mm=checked.without_shading_mm)
+                ctx = unshaded_context(ctx, checked.without_shading_mm)
             reuse = checked.pairs(state.appearance.polarity) if checked else ()
             ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
                                         appearance_clear, registered=reuse)

@@ -44,17 +44,14 @@ from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import CarmPose
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import without_shading
-from carmreg.logic.io.landmarks import Landmarks2D, read_landmarks_3d
-from carmreg.logic.io.volumes import load_volume
-from carmreg.logic.io.xray import load_xray
 from carmreg.logic.registration import image_refine, pipeline
 from carmreg.logic.registration.image_refine import refine_detector
-from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
 from carmreg.logic.similarity.metrics import gc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import appearance as app  # noqa: E402  (the benchmark's own appearance chain, beside this file)
+from measure_without_shading import registered_without_clicks  # noqa: E402
 
 POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 REFINE_PIXEL_MM = RegistrationParameters().refine_coarse.detector_pixel_mm  # the image-alone refinement's pixel
@@ -109,16 +106,8 @@ def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: floa
 
 def polarity_check(folder: Path, cache_dir: str):
     """(state after the spatial stage without clicks, CT, params) as the CLI runs it."""
-    result = json.loads((folder / "out_none" / "result.json").read_text())
-    inputs, g = result["inputs"], result["geometry"]
-    xray = load_xray(inputs["xray"], sdd_mm=g["sdd_mm"], pixel_spacing_mm=g["pixel_spacing_mm"][0])
-    ct, ct_lm = load_volume(inputs["ct"]), read_landmarks_3d(inputs["ct_landmarks"])
-    params = RegistrationParameters(cache_dir=cache_dir)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, ct_lm, xray, Landmarks2D([], np.zeros((0, 2))), params)
-    for name in ("database", "spatial"):
-        logic.run_stage(state, name)
-    return state, ct, params
+    _, state = registered_without_clicks(folder, cache_dir, ("database", "spatial"))
+    return state, state.ct, state.parameters
 
 
 def verdict(state) -> str:

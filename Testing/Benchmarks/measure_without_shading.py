@@ -32,8 +32,9 @@ from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
 
 
-def state_after_database(folder: Path, cache_dir: str):
-    """(logic, state after the database stage, {storage: GC map}) of ``folder`` as the CLI ran it without clicks."""
+def registered_without_clicks(folder: Path, cache_dir: str, stages: tuple = ("database",)):
+    """(logic, state after ``stages``) of ``folder`` as the CLI ran it without clicks (its ``result.json``'s inputs
+    and geometry)."""
     result = json.loads((folder / "out_none" / "result.json").read_text())
     inputs, g = result["inputs"], result["geometry"]
     xray = load_xray(inputs["xray"], sdd_mm=g["sdd_mm"], pixel_spacing_mm=g["pixel_spacing_mm"][0])
@@ -41,11 +42,9 @@ def state_after_database(folder: Path, cache_dir: str):
     logic = CarmRegLogic()
     state = logic.prepare(ct, ct_lm, xray, Landmarks2D([], np.zeros((0, 2))), RegistrationParameters(
         cache_dir=cache_dir))
-    logic.run_stage(state, "database")
-    rows, cols = state.database.drrs.shape[2:]
-    _, gc_by_storage = database_gc(xray.pixels, state.mask, state.database.drrs.reshape(-1, rows, cols),
-                                   state.coarse_factor)
-    return logic, state, gc_by_storage
+    for name in stages:
+        logic.run_stage(state, name)
+    return logic, state
 
 
 def first_verdict(result: dict) -> dict:
@@ -63,19 +62,22 @@ def measure(folder: Path, cache_dir: str) -> dict:
     """One image: its first verdict (as recorded) and the second opinion's scores, measured here."""
     result = json.loads((folder / "out_none" / "result.json").read_text())
     truth = json.loads((folder / "truth.json").read_text())
-    logic, state, gc_by_storage = state_after_database(folder, cache_dir)
+    logic, state = registered_without_clicks(folder, cache_dir)
+    rows, cols = state.database.drrs.shape[2:]
+    _, gc_by_storage = database_gc(state.xray.pixels, state.mask, state.database.drrs.reshape(-1, rows, cols),
+                                   state.coarse_factor)
     unshaded = logic._polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
     seen, gap = image_polarity(unshaded.scores)
     first = first_verdict(result)
     return {"case": int(folder.parent.name.removeprefix("case")), "variant": folder.name, "folder": str(folder),
             "truth": "bone-bright" if truth["bone_bright_displayed"] else "bone-dark", "first": first,
-            "second_opinion_runs": first["asked"], "scores": unshaded.scores, "polarity": seen, "gap": gap}
+            "scores": unshaded.scores, "polarity": seen, "gap": gap}
 
 
 def counts(rows: list[dict]) -> dict:
     """Where asked: the first verdict wrong, the second opinion disagreeing right / wrong. Over every image: the
     second opinion wrong, its largest wrong lead, and clear (at the first verdict's gap) and right."""
-    asked = [r for r in rows if r["second_opinion_runs"]]
+    asked = [r for r in rows if r["first"]["asked"]]
     disagree = [r for r in asked if r["polarity"] != r["first"]["polarity"]]
     wrong = [r for r in rows if r["polarity"] != r["truth"]]
     return {"images": len(rows), "asked": len(asked),
@@ -95,7 +97,7 @@ def table(rows: list[dict]) -> str:
         f, s = r["first"], r["scores"]
         lines.append(f"| {r['case']} | {r['variant']} | {r['truth']} | {f['polarity']}"
                      f"{'' if f['polarity'] == r['truth'] else ' WRONG'}{'' if f['clear'] else ' (unclear)'}, "
-                     f"{f['gap']:.3f} | {'yes' if r['second_opinion_runs'] else ''} "
+                     f"{f['gap']:.3f} | {'yes' if f['asked'] else ''} "
                      f"| {s['bone-dark']:.3f} / {s['bone-bright']:.3f} | {r['polarity']}"
                      f"{'' if r['polarity'] == r['truth'] else ' WRONG'}, {r['gap']:.3f} |")
     return "\n".join(lines)
