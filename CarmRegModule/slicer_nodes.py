@@ -184,7 +184,8 @@ def set_image_on_xray_grid(volume_node, image, xray_node):
 
 def set_projected_levels(markups_node, result, xray_node):
     """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0));
-    with a "?" after each name when the answer withholds the names (``style.unsure_name``: the X-ray refused)."""
+    with a "?" after each name the image did not confirm (``style.unsure_name``: ambiguous, contradicted, or the
+    X-ray refused)."""
     from carmreg.logic.report.style import unsure_name
 
     markups_node.RemoveAllControlPoints()

@@ -222,7 +222,7 @@ class WindowRegistration:
         bone_dark = appearance.bone_dark if appearance is not None else self.xray.bone_dark
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary, banner,
-                                     contradicted=bool(check and check.contradicted),
+                                     status=check.status if check else None,
                                      names_withheld=not names_shown(check))
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)

@@ -16,7 +16,14 @@ import numpy as np
 from qtpy import QtCore, QtGui
 
 from carmreg.logic.report import composite as overlay_images
-from carmreg.logic.report.style import CHECK_COLOUR, CLICK_COLOUR, FITTED_COLOUR, level_marker, status_ink
+from carmreg.logic.report.style import (
+    CHECK_COLOUR,
+    CLICK_COLOUR,
+    FITTED_COLOUR,
+    UNSURE_WORDS,
+    level_marker,
+    status_ink,
+)
 
 from .image_canvas import ImageCanvas
 from .markers import MarkerSpec
@@ -40,20 +47,20 @@ class OverlayView(ImageCanvas):
         self.show_names = True
         self.summary = ""
         self.banner: tuple[str, str, str] | None = None  # (headline, reason, colour) of the level answer
-        self.contradicted = False
+        self.status: str | None = None  # the level answer's status: the markers' style (style.level_marker)
         self.names_withheld = False  # the answer names no level (the X-ray refused): markers without names
 
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "",
-                   banner: tuple[str, str, str] | None = None, contradicted: bool = False,
+                   banner: tuple[str, str, str] | None = None, status: str | None = None,
                    names_withheld: bool = False) -> None:
         """``summary``: the header line (mPDE of the pose drawn, magnification); ``banner``: the level answer
-        (headline, reason, colour) drawn across the top; ``contradicted``: the image contradicts the names of
-        the fitted levels, which are then drawn in red with a "?"; ``names_withheld``: the answer names no level
-        (``style.names_shown``), so no name is drawn, whatever "Names" says."""
+        (headline, reason, colour) drawn across the top; ``status``: the level answer's status (ambiguous or
+        contradicted: every name drawn with a "?", ``style.level_marker``); ``names_withheld``: the answer names
+        no level (``style.names_shown``), so no name is drawn, whatever "Names" says."""
         from carmreg.logic.image.field import field_mask
 
-        self.banner, self.contradicted, self.names_withheld = banner, bool(contradicted), bool(names_withheld)
+        self.banner, self.status, self.names_withheld = banner, status, bool(names_withheld)
 
         mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
@@ -65,7 +72,7 @@ class OverlayView(ImageCanvas):
 
     def clear(self) -> None:
         self._xray01 = self._drr01 = None
-        self.levels, self.clicks, self.summary, self.banner, self.contradicted = [], {}, "", None, False
+        self.levels, self.clicks, self.summary, self.banner, self.status = [], {}, "", None, None
         self.names_withheld = False
         self.set_image(None)
 
@@ -97,7 +104,7 @@ class OverlayView(ImageCanvas):
             if not level.get("in_image", True):
                 continue  # listed in the corner text instead
             u, v = level["uv_px"]
-            marker = level_marker(level, self.contradicted,  # the report page's style
+            marker = level_marker(level, self.status,  # the report page's style
                                   self.show_names and not self.names_withheld)
             specs.append(MarkerSpec(("level", level["label"]), u, v, marker.text,
                                     "fitted" if marker.fitted else "check", 1.0, marker.colour))
@@ -200,8 +207,8 @@ class OverlayView(ImageCanvas):
     def draw_annotations(self, painter: QtGui.QPainter, view: QtCore.QRectF) -> None:
         top = self.draw_banner(painter, view)
         super().draw_annotations(painter, view.adjusted(0, top, 0, 0))
-        fitted = (status_ink("contradicted"), "name contradicted by the image") if self.contradicted else \
-            (FITTED_COLOUR, "fitted level (PDE to click)")
+        fitted = (status_ink(self.status), f"fitted level, {UNSURE_WORDS[self.status]}") \
+            if self.status in UNSURE_WORDS else (FITTED_COLOUR, "fitted level (PDE to click)")
         entries = [("fitted", *fitted),
                    ("check", CHECK_COLOUR, "CT level not fitted (projected)"),
                    ("click", CLICK_COLOUR, "X-ray click")]

@@ -93,29 +93,28 @@ its mirror by only 0.082, while every mirrored display judged at the clicks (bot
 mirror by 0.25 or more; over all 303 recorded clicked runs the change turns 5 tune runs (correct displays) from
 ambiguous to confident or contradicted as they should be, and none of the report half.
 
-The orientation check at the clicks needs a clear polarity, and on a mirrored display the polarity check at the
-clicks finds no aligned spine under either polarity: its verdict stays unclear, sometimes for the wrong polarity
-(the appearance benchmark, stop 17: 11 of 24 mirrored displays with unnamed clicks unclear, 4 of them taken bone
-bright). So when the polarity at the clicks is unclear (and the user did not set it), it is judged again on the
-image mirrored left-right, exactly as at the clicks (``REFINED_ON_MIRROR``, ``pipeline._polarity_on_mirror``). That
-verdict is taken only when it is clear and the mirror then leads the stored image under that polarity by
-``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``click_orientation.stored_against_turned``): the
-display is then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the
-record. No threshold of its own: the verdict's are the two at the clicks.
+The orientation check at the clicks needs a clear polarity, and on a mirrored display the polarity check at the clicks
+finds no aligned spine under either polarity: its verdict stays unclear, sometimes for the wrong polarity (the
+appearance benchmark, stop 17: 11 of 24 mirrored displays with unnamed clicks unclear, 4 of them taken bone bright). So
+when the polarity at the clicks is unclear (and the user did not set it), it is judged again on the image mirrored
+left-right, exactly as at the clicks (``REFINED_ON_MIRROR``, ``appearance_checks._polarity_on_mirror``). That verdict is
+taken only when it is clear and the mirror then leads the stored image under that polarity by
+``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``click_orientation.stored_against_turned``): the display is
+then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the record. No threshold
+of its own: the verdict's are the two at the clicks.
 
-Without clicks the same holds (stop 28): a mirrored display the database did not refuse left the image-alone
-polarity unclear, often for the wrong polarity (the appearance benchmark's report halves: 5 of the 7 such runs
-recorded at stops 21 and 27). So when the polarity found without clicks is unclear and the orientation not clearly
-as stored (the user did not set the polarity), each polarity is refined on the image mirrored left-right as on the
-image as stored (``REFINED_ON_MIRROR_WITHOUT_CLICKS``, ``pipeline._polarity_on_mirror_without_clicks``). When the
-mirror's leading polarity then agrees with the image by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as
-stored does under that polarity, the display is mirrored: the mirror's verdict is taken (clear at
-``CLEAR_REFINED_GC``) and the image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes
-but the record.
+Without clicks the same holds (stop 28): a mirrored display the database did not refuse left the image-alone polarity
+unclear, often for the wrong polarity (the appearance benchmark's report halves: 5 of the 7 such runs recorded at stops
+21 and 27). So when the polarity found without clicks is unclear and the orientation not clearly as stored (the user did
+not set the polarity), each polarity is refined on the image mirrored left-right as on the image as stored
+(``REFINED_ON_MIRROR_WITHOUT_CLICKS``, ``appearance_checks._polarity_on_mirror_without_clicks``). When the mirror's
+leading polarity then agrees with the image by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as stored does
+under that polarity, the display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the
+image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes but the record.
 
 A polarity still unclear without clicks, on an image taken as stored (the user did not set it), gets a second
-opinion (stop 29, ``REFINED_WITHOUT_SHADING``, ``pipeline._polarity_without_shading``): the same search with the
-X-ray, the database and every DRR compared without their shading above ``WITHOUT_SHADING_MM``
+opinion (stop 29, ``REFINED_WITHOUT_SHADING``, ``appearance_checks._polarity_without_shading``): the same
+search with the X-ray, the database and every DRR compared without their shading above ``WITHOUT_SHADING_MM``
 (``image.shading``). The first verdict's misses were failures of its search, not of the image (stop 28,
 ``Testing/Benchmarks/large_patient_shading.py``): a large patient's scatter shading outweighing the faint bone, a
 view tilted out of the image plane whose plain map's peaks lay away from the true pose. When it leads with the
@@ -278,7 +277,7 @@ class Appearance:
     def set_orientation_on_mirror(self, scores: dict) -> None:
         """Without clicks: the display taken as mirrored left-right from the refined image-alone registrations
         (``scores``: {"as-stored": GC, "mirrored-left-right": GC}, each the best under the polarity used), which
-        ``pipeline._polarity_on_mirror_without_clicks`` does only when the mirror leads by
+        ``appearance_checks._polarity_on_mirror_without_clicks`` does only when the mirror leads by
         ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
         self.orientation_on_mirror = {k: float(v) for k, v in scores.items()}
         self.orientation, self.orientation_clear = "mirrored-left-right", False

@@ -9,7 +9,7 @@ removed, 0.56). With ``m`` the field mask, ``G_s`` a Gaussian of standard deviat
     I_hp  = (I - local) m
 
 Normalising by ``G_s * m`` keeps the field's edge from reading as an edge of the image. Used by the no-click
-polarity check's second opinion (``pipeline._polarity_without_shading``), on the X-ray and on every DRR it is
+polarity check's second opinion (``appearance_checks._polarity_without_shading``), on the X-ray and on every DRR it is
 compared with alike.
 """
 

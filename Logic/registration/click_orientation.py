@@ -127,7 +127,7 @@ def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> L
 def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: str, polarity: str,
                           rule: ConfidenceRule) -> ClickOrientation:
     """The orientation evidence of a polarity judged on orientation ``name`` of the image as well as stored
-    (``pipeline._polarity_on_mirror``): each orientation's score is its best registration under ``polarity``
+    (``appearance_checks._polarity_on_mirror``): each orientation's score is its best registration under ``polarity``
     (``polarity_at_clicks`` on the stored image, ``stored``, and on the turned one with the clicks turned,
     ``turned``); the turned one keeps the clicks fitted when its own verdict says so (``turned.fits``) and its mPDE
     is within the level rule's limit against the stored one's, as ``orientation_at_clicks`` asks of a rival."""

@@ -27,7 +27,7 @@ polarity has no aligned spine to show either, and the verdict stays unclear).
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
-the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``confirms``; ``pipeline._appearance_with``).
+the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``confirms``; ``appearance_checks.with_winner``).
 A labelling's landmark fit depends on the clicks only and is shared by its polarities.
 
 The chosen polarity's registrations are the levels stage's own (same image, same mu level, same refinement), so

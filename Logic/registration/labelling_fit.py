@@ -174,6 +174,16 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> La
     return _refine_from(ctx, fit, np.asarray(start_pose, float))
 
 
+def state_context(state, line_integral: np.ndarray, ty_mm: float, tz_mm: float, should_stop,
+                  on_labelling=None) -> FitContext:
+    """What every labelling's registration on ``line_integral`` shares, from a ``RegistrationState``: its pyramid's
+    mu level of the coarse refinement, geometry, field and parameters; the spatial stage's (ty, tz) mm."""
+    p = state.parameters
+    return FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, line_integral,
+                      state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
+                      p.depth_far_mm, p.depth_step_mm, should_stop, on_labelling)
+
+
 def unshaded_context(ctx: FitContext, without_shading_mm: float) -> FitContext:
     """``ctx`` whose image refinements compare the X-ray and each DRR without their shading above
     ``without_shading_mm`` (``RefineParameters.without_shading_mm``, ``image.shading``)."""

@@ -3,7 +3,8 @@
 The same picture as the window's overlay view: the composite of ``composite`` (the X-ray bone bright in grey
 over its display range, the DRR at the found pose added in amber, black outside the exposed field), every
 CT-labelled level projected and named in the style of ``style.level_marker`` (filled green disc with its PDE for a
-level the fit used, red with a "?" when the image contradicts the names, yellow ring for a level not clicked,
+level the fit used, amber or red with a "?" when the image did not confirm the names (ambiguous, contradicted),
+yellow ring for a level not clicked,
 red cross for a click), and - in ``overlay.png`` - the level answer's banner (``style.answer_banner``) across the
 top. Pixel positions are (u, v) = (column, row) px, 0-based pixel centres; images are indexed image[row, column].
 
@@ -42,11 +43,11 @@ def screen_composite(xray_pixels: np.ndarray, drr_line_integral: np.ndarray | No
     return blend(xray01, drr01, alpha)
 
 
-def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, contradicted: bool,
+def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, status: str | None,
                  scale: float = 1.0, interpolation: str = "antialiased", names: bool = True) -> None:
     """The composite ``rgb`` (image[row, col]) with the projected levels, their names and PDE
-    (``style.level_marker``; ``names`` False: markers only, ``style.names_shown``), and the clicks ({name: (u, v)
-    px}); ``scale`` multiplies text and marker sizes
+    (``style.level_marker`` under the level answer's ``status``; ``names`` False: markers only,
+    ``style.names_shown``), and the clicks ({name: (u, v) px}); ``scale`` multiplies text and marker sizes
     (1 = the report page's); ``interpolation``: matplotlib's, for an image drawn at another size than its own
     (the page's "antialiased": a Hanning filter where the image is shrunk; "lanczos" differed from it by 0.2 grey
     levels on average, a little sharper, and took 0.25 s more of every report)."""
@@ -54,7 +55,7 @@ def draw_overlay(ax, rgb: np.ndarray, levels: list[dict], clicked: dict | None, 
     rows, cols = rgb.shape[:2]
     for lv in levels:
         if lv.get("in_image", True):
-            _draw_level(ax, lv, level_marker(lv, contradicted, names), scale)
+            _draw_level(ax, lv, level_marker(lv, status, names), scale)
     for uv in (clicked or {}).values():
         ax.plot(float(uv[0]), float(uv[1]), "+", ms=9 * scale, mew=1.3 * scale, color=CLICK_COLOUR)
     ax.set_xlim(-0.5, cols - 0.5)
@@ -109,7 +110,7 @@ def render_overlay(rgb: np.ndarray, levels: list[dict], clicked: dict | None = N
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     ax.set_axis_off()
     # one output pixel per image pixel: "nearest" copies them (lanczos gave the same to 1 grey level, 4x slower)
-    draw_overlay(ax, rgb, levels, clicked, bool(level_check and level_check.contradicted), scale, "nearest",
+    draw_overlay(ax, rgb, levels, clicked, level_check.status if level_check else None, scale, "nearest",
                  names_shown(level_check))
     banner = answer_banner(level_check, ok, list(failed_checks))
     if banner is not None:

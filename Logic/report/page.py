@@ -9,9 +9,10 @@ What the page shows, top to bottom:
 - the **overlay as on screen**: the X-ray (bone bright, inside its exposed field) with the DRR at the found pose
   blended in amber (the window's default "blend" mode; the window passes its own composite), every CT-labelled
   level projected and named: filled green disc = a level the fit used, with its PDE (mm on the detector) to the
-  click; yellow ring = a level not clicked; red cross = the click. When the image contradicts the given names,
-  the clicked levels are drawn in red with a "?";
-- the **named levels** (projected ``uv_px`` = (column, row) px, 0-based pixel centres; PDE in detector mm);
+  click; yellow ring = a level not clicked; red cross = the click. When the image does not confirm the names
+  (ambiguous, contradicted), every name carries a "?" and the clicked levels are drawn in the status's colour;
+- the **named levels**, with the same "?" (projected ``uv_px`` = (column, row) px, 0-based pixel centres; PDE
+  in detector mm);
 - the **pose** (the six C-arm parameters about the nominal AP pose, mm and degrees), the **magnification** at
   the isocentre (SDD / SOD at the pose) and the **mPDE of the pose drawn** (mean PDE of the clicked levels at
   the final pose: the accuracy of what is on the page, not of an intermediate stage);
@@ -39,7 +40,14 @@ import numpy as np
 from carmreg.logic.io.atomic import atomic_write, atomic_write_bytes
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.report.overlay import draw_overlay, result_bone_dark, screen_composite
-from carmreg.logic.report.style import MODE_DESCRIPTION, level_answer, margin_detail, names_shown
+from carmreg.logic.report.style import (
+    MODE_DESCRIPTION,
+    UNSURE_WORDS,
+    level_answer,
+    margin_detail,
+    names_shown,
+    unsure_name,
+)
 
 A4_INCHES = (8.27, 11.69)
 LINE_SPACING = 1.2  # matplotlib's line spacing, x the font size
@@ -70,7 +78,7 @@ def _levels_block(levels: list[dict], check: LevelCheck | None = None) -> str:
             continue
         pde = lv.get("pde_mm")
         u, v = lv["uv_px"]
-        lines.append(f"{lv['label']:<6} {'yes' if lv.get('fitted') else 'no':<8} "
+        lines.append(f"{unsure_name(lv['label'], check):<6} {'yes' if lv.get('fitted') else 'no':<8} "
                      f"{'-' if pde is None else f'{pde:.2f}':>6}  ({u:.0f}, {v:.0f})")
     outside = [lv["label"] for lv in levels if not lv.get("in_image", True)]
     if outside:
@@ -238,10 +246,10 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     banner.text(0.015, 0.56, text, fontsize=size, color="white", va="top", transform=banner.transAxes)
 
     ax = fig.add_axes((0.05, 0.445, 0.58, 0.41))
-    draw_overlay(ax, rgb, doc["levels"], clicked, status == "contradicted", names=names_shown(check))
+    draw_overlay(ax, rgb, doc["levels"], clicked, status, names=names_shown(check))
     fig.text(0.05, 0.438, "Overlay: X-ray (grey, bone bright) + DRR at the found pose (amber). Green disc: level "
              "used by the fit, with its\nPDE to the click; yellow ring: level not clicked; red cross: click"
-             + ("; red '?': name contradicted." if status == "contradicted" else "."), fontsize=6.8, va="top",
+             + (f"; '?': {UNSURE_WORDS[status]}." if status in UNSURE_WORDS else "."), fontsize=6.8, va="top",
              color="#343a40")
 
     fig.text(0.655, 0.853, "Named levels (projected)", fontsize=9, fontweight="bold", va="top")

@@ -16,8 +16,9 @@ node (name)            file                         what
                                                     exact ``uv_px`` under ``carmreg``)
 ``Projected levels``   ``projected_levels.mrk.json``  every CT-labelled level's centroid projected by P onto
                                                     the detector plane, named (``uv_px``, fitted, PDE);
-                                                    on a refused X-ray (names withheld) every name on the
-                                                    detector plane ends in "?" (``style.unsure_name``)
+                                                    names the image did not confirm (ambiguous,
+                                                    contradicted, withheld) end in "?" on the
+                                                    detector plane (``style.unsure_name``)
 ``C-arm`` transform    ``carm.tfm``                 ITK ``lps_to_camera`` (see ``io.transforms``): Slicer's
                                                     transform node then maps the camera frame (x, y flipped
                                                     as Slicer does for LPS files) to RAS; its translation is

@@ -8,12 +8,16 @@ Colours are hex strings (``#rrggbb``). Each status of the level answer has two s
 
 ``level_answer`` and ``answer_banner`` give the level answer in words and its colour, for every banner. An answer
 whose names are withheld (``LevelCheck.withheld``: the X-ray refused) is told in the contradiction colour, and no
-front door writes a level name on the X-ray then (``names_shown``; the 3D Slicer scene's points get a "?").
+front door writes a level name on the X-ray then (``names_shown``).
+
+A name the image did not confirm (status ambiguous or contradicted, ``UNCONFIRMED``) carries a "?" wherever it is
+written - on every overlay, in the window's table, on the 3D Slicer scene's points - so that an image or a
+screenshot without its banner never shows an unconfirmed name as a plain one.
 
 Markers on an overlay (positions (u, v) = (column, row) detector px): a filled disc for a level the fit used,
-named with its PDE (detector mm) to the click, in ``FITTED_COLOUR`` - or, when the image contradicts the given
-names, in the contradiction colour with a "?" after the name; a ring in ``CHECK_COLOUR`` for a CT-labelled level
-not clicked; a cross in ``CLICK_COLOUR`` for the surgeon's click.
+named with its PDE (detector mm) to the click, in ``FITTED_COLOUR`` - or, unconfirmed, in the status's ink
+(amber ambiguous, red contradicted) with a "?" after the name; a ring in ``CHECK_COLOUR`` for a CT-labelled level
+not clicked (its name with a "?" when unconfirmed); a cross in ``CLICK_COLOUR`` for the surgeon's click.
 """
 
 from __future__ import annotations
@@ -46,6 +50,9 @@ WITHHELD_WORDS = "IMAGE REFUSED - NO LEVEL NAMED"
 FITTED_COLOUR = "#40c057"
 CHECK_COLOUR = "#ffd228"
 CLICK_COLOUR = "#ff4d4d"
+# the statuses whose names the image did not confirm (written with a "?"), and what the "?" says then
+UNSURE_WORDS = {"ambiguous": "name not confirmed by the image", "contradicted": "name contradicted by the image"}
+UNCONFIRMED = tuple(UNSURE_WORDS)
 
 
 def names_shown(check: LevelCheck | None) -> bool:
@@ -53,9 +60,16 @@ def names_shown(check: LevelCheck | None) -> bool:
     return not (check and check.withheld)
 
 
+def unconfirmed(check: LevelCheck | None) -> bool:
+    """Whether the level names are not confirmed by the image (ambiguous, contradicted or withheld; module
+    docstring). Names not checked (no level check) are the surgeon's own and stay plain."""
+    return bool(check) and check.status in UNCONFIRMED
+
+
 def unsure_name(label: str, check: LevelCheck | None) -> str:
-    """A level's name where it must be written (a 3D Slicer point's name): with a "?" when names are withheld."""
-    return label if names_shown(check) else f"{label}?"
+    """A level's name where it must be written as text (a 3D Slicer point's name, the window's table): with a "?"
+    when the image did not confirm it (``unconfirmed``)."""
+    return f"{label}?" if unconfirmed(check) else label
 
 
 def status_fill(status: str | None) -> str:
@@ -83,16 +97,17 @@ class LevelMarker:
     fitted: bool
 
 
-def level_marker(level: dict, contradicted: bool, with_text: bool = True) -> LevelMarker:
-    """The marker of one ``result.levels`` entry: ``T12  1.8 mm`` in green for a fitted level (PDE to the
-    click, detector mm), ``T12?  1.8 mm`` in the contradiction colour when ``contradicted``, ``L2`` in yellow
-    for a level not clicked (``L2?`` when ``contradicted``: drawn at the pose fitted to the contradicted names,
-    it would sit on a neighbour); ``with_text`` False gives an empty text (names hidden)."""
+def level_marker(level: dict, status: str | None, with_text: bool = True) -> LevelMarker:
+    """The marker of one ``result.levels`` entry under the level answer's ``status``: ``T12  1.8 mm`` in green
+    for a fitted level (PDE to the click, detector mm), ``T12?  1.8 mm`` in the status's ink when the image did
+    not confirm the names (``UNCONFIRMED``), ``L2`` in yellow for a level not clicked (``L2?`` unconfirmed: drawn
+    at the pose fitted to those names, it may sit on a neighbour); ``with_text`` False gives an empty text (names
+    hidden)."""
     fitted = bool(level.get("fitted"))
     pde = level.get("pde_mm")
-    # a name the image contradicts, or placed by a pose fitted to such names, must not look confirmed
-    text = level["label"] + ("?" if contradicted else "") + (f"  {pde:.1f} mm" if pde is not None else "")
-    colour = (status_ink("contradicted") if contradicted else FITTED_COLOUR) if fitted else CHECK_COLOUR
+    unsure = status in UNCONFIRMED
+    text = level["label"] + ("?" if unsure else "") + (f"  {pde:.1f} mm" if pde is not None else "")
+    colour = (status_ink(status) if unsure else FITTED_COLOUR) if fitted else CHECK_COLOUR
     return LevelMarker(text if with_text else "", colour, fitted)
 
 

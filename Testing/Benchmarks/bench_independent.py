@@ -3,15 +3,18 @@
 Not a test, and never a place to choose a threshold (the cases' README says so): it reports how CarmReg fares on
 X-rays it did not make. Each case is registered by ``carmreg register`` as a subprocess, with ``--sdd-mm`` and
 ``--pixel-spacing-mm`` only (the principal point is unknown to the user), the X-ray as given (16-bit PNG, bone
-bright) and inverted inside its field (bone dark), in two modes: the clicks **unnamed**, and named **one level
-off** (each name moved one level toward the feet). The CT is the sample CT (the same chest CT); the CT centroids
-are the cases' own (``ct_centroids_lps.json``), those inside the sample's crop.
+bright) and inverted inside its field (bone dark), in the cases' four modes: the clicks **unnamed**, named
+**right**, named **one level off** (each name moved one level toward the feet), and **none** (``--no-clicks``: the
+levels in view named from the image alone, never confident by design). The CT is the sample CT (the same chest
+CT); the CT centroids are the cases' own (``ct_centroids_lps.json``), those inside the sample's crop.
 
 Scoring as the cases' README says: project every visible level's centroid with the found and the true P; a level is
 named right when its projection is nearer its own true position than any other level's; pose-PDE of the levels not
-clicked in detector mm. Writes ``results_independent.json`` and prints the table::
+clicked in detector mm. A run is **right** when: unnamed, its assigned names are the truth; named right, the
+names are confirmed (confident; otherwise they are *flagged*); one level off, the wrong names are not confident;
+no clicks, every visible level is named right. Writes ``results_independent.json`` and prints the table::
 
-    .venv/bin/python Testing/Benchmarks/bench_independent.py --out /tmp/independent
+    .venv/bin/python Testing/Benchmarks/bench_independent.py --out /tmp/independent [--modes named none]
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from PIL import Image
 ROOT = Path(__file__).resolve().parents[2]
 CASES = ROOT.parent / "shared" / "data" / "independent-cases"
 SAMPLE_CT = ROOT / "Resources" / "SampleCase" / "ct.nrrd"
+MODES = ("unnamed", "named", "one-level-off", "none")
 
 
 def _project(P: np.ndarray, point: list) -> np.ndarray:
@@ -47,15 +51,24 @@ def prepare(case: Path, variant: str, mode: str, inside: dict, work: Path) -> li
         Image.fromarray(np.where(a > 0, 65535 - a, 0).astype(np.uint16)).save(work / "xray.png")
         xray = work / "xray.png"
     clicks = d["xray_points_px"]
-    if mode == "unnamed":
-        (work / "clicks.json").write_text(json.dumps(list(clicks.values())))
+    order = sorted(inside, key=lambda n: -inside[n][2])  # head to feet
+    given = {"unnamed": list(clicks.values()), "named": clicks,
+             "one-level-off": {order[order.index(k) + 1]: v for k, v in clicks.items()}}.get(mode)
+    if given is None:
+        clicks_args = ["--no-clicks"]
     else:
-        order = sorted(inside, key=lambda n: -inside[n][2])  # head to feet
-        (work / "clicks.json").write_text(json.dumps({order[order.index(k) + 1]: v for k, v in clicks.items()}))
+        (work / "clicks.json").write_text(json.dumps(given))
+        clicks_args = ["--xray-landmarks", str(work / "clicks.json")]
     intr = d["intrinsics"]
     return ["register", "--ct", str(SAMPLE_CT), "--ct-landmarks", str(work / "ct.json"), "--xray", str(xray),
-            "--xray-landmarks", str(work / "clicks.json"), "--out", str(work / "out"),
+            *clicks_args, "--out", str(work / "out"),
             "--sdd-mm", str(intr["sdd_mm"]), "--pixel-spacing-mm", str(intr["pixel_spacing_mm"])]
+
+
+def right(row: dict) -> bool:
+    """Whether a scored run is right (module docstring)."""
+    return {"unnamed": row["assigned"] == row["truth"], "named": row["status"] == "confident",
+            "one-level-off": row["status"] != "confident", "none": row["all_named_right"]}[row["mode"]]
 
 
 def score(case: Path, result: dict, inside: dict) -> dict:
@@ -74,19 +87,24 @@ def score(case: Path, result: dict, inside: dict) -> dict:
 
 
 def summarize(rows: list[dict]) -> str:
-    lines = ["| mode | stored as | right | CONFIDENT and wrong | ambiguous | contradicted | polarity right | "
-             "levels not clicked (detector mm): median / 95th pct / max |", "|---|---|---|---|---|---|---|---|"]
-    for mode in ("unnamed", "one-level-off"):
+    lines = ["| mode | stored as | right | CONFIDENT and wrong | confident | proposed (wrong) | ambiguous | "
+             "contradicted | polarity right | levels not clicked (detector mm): median / 95th pct / max |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for mode in MODES:
         for variant in ("bone-bright", "bone-dark"):
             rs = [r for r in rows if r["mode"] == mode and r["variant"] == variant and r.get("status")]
             if not rs:
                 continue
-            right = [r["assigned"] == r["truth"] if mode == "unnamed" else r["status"] != "confident" for r in rs]
-            wrong_conf = sum(r["status"] == "confident" and not ok for r, ok in zip(rs, right, strict=True))
+            ok = [right(r) for r in rs]
+            wrong_conf = sum(r["status"] == "confident" and not good for r, good in zip(rs, ok, strict=True))
+            proposed = [good for r, good in zip(rs, ok, strict=True) if r["status"] == "proposed"]
             pol = sum(r["polarity"] == variant for r in rs)
-            pde = np.concatenate([r["unclicked_pde_mm"] for r in rs]) if mode == "unnamed" else np.array([])
+            pde = np.concatenate([r["unclicked_pde_mm"] for r in rs]) if mode in ("unnamed", "named") \
+                else np.array([])
             acc = f"{np.median(pde):.2f} / {np.percentile(pde, 95):.2f} / {pde.max():.2f}" if pde.size else "-"
-            lines.append(f"| {mode} | {variant} | {sum(right)} / {len(rs)} | {wrong_conf} | "
+            lines.append(f"| {mode} | {variant} | {sum(ok)} / {len(rs)} | {wrong_conf} | "
+                         f"{sum(r['status'] == 'confident' for r in rs)} | "
+                         f"{len(proposed)} ({len(proposed) - sum(proposed)}) | "
                          f"{sum(r['status'] == 'ambiguous' for r in rs)} | "
                          f"{sum(r['status'] == 'contradicted' for r in rs)} | {pol} / {len(rs)} | {acc} |")
     return "\n".join(lines) + "\n"
@@ -96,6 +114,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("/tmp/carmreg-independent"))
     parser.add_argument("--cache-dir", default="/tmp/carmreg-independent-cache")
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     args = parser.parse_args(argv)
     if not CASES.is_dir():
         print(f"bench_independent: {CASES} is absent (it comes with ../shared)", file=sys.stderr)
@@ -109,7 +128,7 @@ def main(argv=None) -> int:
     carmreg = str(Path(sys.executable).with_name("carmreg"))
     rows = []
     for case in sorted(p for p in CASES.iterdir() if (p / "case.json").is_file()):
-        for mode in ("unnamed", "one-level-off"):
+        for mode in args.modes:
             for variant in ("bone-bright", "bone-dark"):
                 work = args.out / f"{case.name}-{mode}-{variant}"
                 cmd = [carmreg, *prepare(case, variant, mode, inside, work), "--cache-dir", args.cache_dir]

@@ -16,10 +16,11 @@ Were the large patient's wrong verdict due to the search and not to the image, t
 right polarity while the right polarity's refined poses do not reach it.
 
 3. with ``--search``, the same polarity check again with the search changed: ``high-passed``: the DRR database,
-   the X-ray's coarse image (``pipeline.spatial_search`` and ``pipeline.image_starts``: the starts) and every DRR and
+   the X-ray's coarse image (``spatial_search`` and ``image_starts`` where the pipeline and its appearance checks
+   call them: the starts) and every DRR and
    the X-ray in the refinement's GC (``image_refine.prepare``) all pass through ``without_shading`` first;
    ``high-passed-starts``: only the starts so (the high pass is CarmReg's ``image.shading`` since stop 29, which
-   built the first of these into the pipeline as a second opinion, ``pipeline._polarity_without_shading``; the
+   built the first of these into the pipeline as a second opinion, ``appearance_checks._polarity_without_shading``; the
    tables of stop 28 were measured with this script's own copy, its Gaussians reflected at the image's border);
    ``tilted-starts``: every start also tilted out of the image plane by
    +-``--tilt-deg`` about each of the two axes across the beam (ry, rz). An experiment only: the functions are
@@ -44,7 +45,7 @@ from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import CarmPose
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import without_shading
-from carmreg.logic.registration import image_refine, pipeline
+from carmreg.logic.registration import appearance_checks, image_refine, pipeline
 from carmreg.logic.registration.image_refine import refine_detector
 from carmreg.logic.registration.state import RegistrationParameters
 from carmreg.logic.similarity.metrics import gc
@@ -61,6 +62,7 @@ REFINE_PIXEL_MM = RegistrationParameters().refine_coarse.detector_pixel_mm  # th
 def changed_search(search: str, sigma_mm: float, tilt_deg: float):
     """The no-click search changed as ``search`` says (module docstring, 3.), for the ``with`` block."""
     spatial, starts, prepare = pipeline.spatial_search, pipeline.image_starts, image_refine.prepare
+    callers = (pipeline, appearance_checks)  # the modules that call the search's functions
     databases = {}
 
     def passed(db, xray_coarse, mask_coarse):
@@ -85,16 +87,19 @@ def changed_search(search: str, sigma_mm: float, tilt_deg: float):
         return [start + np.array([0, 0, 0, 0, ry, rz]) for start in starts(db, xray_coarse, mask_coarse, count)
                 for ry, rz in tilts]
 
-    if search in ("high-passed", "high-passed-starts"):
-        pipeline.spatial_search, pipeline.image_starts = spatial_passed, starts_passed
+    for module in callers:
+        if search in ("high-passed", "high-passed-starts"):
+            module.spatial_search, module.image_starts = spatial_passed, starts_passed
+        if search == "tilted-starts":
+            module.image_starts = starts_tilted
     if search == "high-passed":
         image_refine.prepare = prepare_passed
-    if search == "tilted-starts":
-        pipeline.image_starts = starts_tilted
     try:
         yield
     finally:
-        pipeline.spatial_search, pipeline.image_starts, image_refine.prepare = spatial, starts, prepare
+        for module in callers:
+            module.spatial_search, module.image_starts = spatial, starts
+        image_refine.prepare = prepare
 
 
 def scores(fixed: np.ndarray, drrs: np.ndarray, mask: np.ndarray, sigma_px: float) -> tuple[float, float]:

@@ -7,7 +7,7 @@ Not a test: run it by hand on appearance-benchmark case folders already register
         --out /tmp/without_shading_tune.json
 
 Without clicks, a polarity still unclear on an image taken as stored gets a second opinion
-(``pipeline._polarity_without_shading``): the same image-alone search with every image compared without its
+(``appearance_checks._polarity_without_shading``): the same image-alone search with every image compared without its
 shading above ``WITHOUT_SHADING_MM`` (``image.shading``). Where it leads with the other polarity it is used, never
 clear. Its danger is a wrong lead, so it is measured here on **every** image (``asked``: whether the run asked it,
 as its ``result.json`` records), with the first verdict as the run recorded it. Printed: per image, and the counts:
@@ -66,7 +66,7 @@ def measure(folder: Path, cache_dir: str) -> dict:
     rows, cols = state.database.drrs.shape[2:]
     _, gc_by_storage = database_gc(state.xray.pixels, state.mask, state.database.drrs.reshape(-1, rows, cols),
                                    state.coarse_factor)
-    unshaded = logic._polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
+    unshaded = logic._appearance.polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
     seen, gap = image_polarity(unshaded.scores)
     first = first_verdict(result)
     return {"case": int(folder.parent.name.removeprefix("case")), "variant": folder.name, "folder": str(folder),

@@ -349,7 +349,7 @@ def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sampl
     def cancelled(*args, **kwargs):
         raise CancelledError("registration cancelled by the user")
 
-    monkeypatch.setattr(logic, "_orientation_at_clicks", cancelled)
+    monkeypatch.setattr(logic._appearance, "_orientation_at_clicks", cancelled)
     with pytest.raises(CancelledError):
         logic.run_stage(state, "levels")
     assert json.dumps(state.appearance.as_dict(), sort_keys=True, default=str) == before

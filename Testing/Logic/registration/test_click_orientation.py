@@ -276,7 +276,7 @@ def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again
     calls = []
     real = click_orientation._registered_turned
     monkeypatch.setattr(click_orientation, "_registered_turned", lambda *args: calls.append(args) or real(*args))
-    logic._orientation_at_clicks(state, "spatial")
+    logic._appearance._orientation_at_clicks(state, "spatial")
     assert calls == []
     assert repr(a.orientation_at_clicks) == repr(first)  # nan (an orientation nothing could be fitted on) too
 

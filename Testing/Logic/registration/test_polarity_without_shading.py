@@ -1,5 +1,5 @@
-"""Without clicks, the second opinion on the polarity (``pipeline._polarity_without_shading``), on tune cases of the
-appearance benchmark (the second CT): where it disagrees with the first verdict it is used, never clear; where it
+"""Without clicks, the second opinion on the polarity (``appearance_checks._polarity_without_shading``), on tune cases
+of the appearance benchmark (the second CT): where it disagrees with the first verdict it is used, never clear; where it
 agrees, nothing changes."""
 
 import sys

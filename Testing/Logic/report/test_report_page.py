@@ -248,13 +248,28 @@ def test_the_overlay_banners_reason_never_covers_a_level():
     assert high > 5  # the headline stays
 
 
-def test_every_name_drawn_under_a_contradiction_carries_a_question_mark():
-    """The levels not clicked are placed by the pose fitted to the contradicted names: one level off, they would
-    sit on a neighbour, so they are marked unsure too (keeping the not-clicked colour)."""
-    from carmreg.logic.report.style import CHECK_COLOUR, level_marker
+def test_every_name_the_image_did_not_confirm_carries_a_question_mark():
+    """The levels not clicked are placed by the pose fitted to the names: when the image contradicts those names,
+    or cannot confirm them (ambiguous), they may sit on a neighbour, so every name is marked unsure (the levels
+    not clicked keeping their colour, the fitted ones in the status's ink); confident, proposed and unchecked
+    names stay plain."""
+    from carmreg.logic.report.style import CHECK_COLOUR, FITTED_COLOUR, level_marker, status_ink
 
     clicked = {"label": "T10", "fitted": True, "pde_mm": 1.2}
     other = {"label": "L1", "fitted": False, "pde_mm": None}
-    assert [level_marker(lv, False).text for lv in (clicked, other)] == ["T10  1.2 mm", "L1"]
-    assert [level_marker(lv, True).text for lv in (clicked, other)] == ["T10?  1.2 mm", "L1?"]
-    assert level_marker(other, True).colour == CHECK_COLOUR
+    for status in ("confident", "proposed", None):
+        assert [level_marker(lv, status).text for lv in (clicked, other)] == ["T10  1.2 mm", "L1"]
+        assert level_marker(clicked, status).colour == FITTED_COLOUR
+    for status in ("ambiguous", "contradicted"):
+        assert [level_marker(lv, status).text for lv in (clicked, other)] == ["T10?  1.2 mm", "L1?"]
+        assert level_marker(clicked, status).colour == status_ink(status) != FITTED_COLOUR
+        assert level_marker(other, status).colour == CHECK_COLOUR
+
+
+def test_an_ambiguous_page_lists_and_draws_its_names_with_a_question_mark(tmp_path):
+    """An ambiguous answer: the page's list of named levels carries the "?", and so does the caption."""
+    result = _result("ambiguous")
+    path = write_report_pdf(tmp_path / "report.pdf", result, result.xray_line_integral, {}, bone_dark=False)
+    text = " ".join(pypdf.PdfReader(str(path)).pages[0].extract_text().split())
+    assert "LEVELS AMBIGUOUS" in text
+    assert "T10? yes" in text and "'?': name not confirmed by the image" in text

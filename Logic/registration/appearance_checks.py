@@ -1,0 +1,381 @@
+"""The X-ray's appearance decided against the CT: polarity, storage and orientation (the spatial stage's first step).
+
+``AppearanceChecks.decide`` is every check, in order, on the state after the database stage; each check below
+runs only when the verdict before it left the question open and the user did not set the polarity:
+
+1. the database's gradient correlation under each storage and polarity (``image.appearance.database_gc``);
+2. with clicks, the leading labellings registered under both polarities (``click_polarity``), else the spatial
+   map's peaks refined on the image alone under both (``image_polarity``); ``decide_polarity`` takes the verdict;
+3. the display's orientation from the database (``orientation_scores``) and, with clicks and a clear polarity,
+   at the clicks (``click_orientation``);
+4. the image mirrored left-right, with clicks (``_polarity_on_mirror``) or without (``_polarity_on_mirror_without_
+   clicks``): a mirrored display is refused;
+5. without clicks, a second opinion without the image's shading (``_polarity_without_shading``);
+6. the warnings on the appearance.
+
+``with_winner`` is the levels stage's ``judge_appearance``: the contest's winner judged at the clicks too. The
+appearance in use (``state.appearance``) always comes with the X-ray's attenuation image converted by it
+(``_use_appearance``). Every number and rule is the README's rule item 5 and ``image.appearance``'s thresholds;
+this module only orders the checks and keeps their evidence in ``appearance.scores``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+
+from carmreg.logic.image.appearance import (
+    POLARITIES,
+    REFINED_AT_CLICKS,
+    REFINED_AT_DATABASE_POSES,
+    REFINED_ON_MIRROR,
+    REFINED_ON_MIRROR_WITHOUT_CLICKS,
+    REFINED_WITHOUT_SHADING,
+    REFUSE_ORIENTATION_AT_CLICKS_GC,
+    WITHOUT_SHADING_MM,
+    better_storage,
+    database_gc,
+    decide_polarity,
+    image_polarity,
+    orientation_scores,
+)
+from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
+from carmreg.logic.image.shading import shading_remover
+from carmreg.logic.registration.click_orientation import (
+    MIRROR,
+    orientation_at_clicks,
+    oriented_context,
+    rival_orientations,
+    stored_against_turned,
+    turned_clicks,
+)
+from carmreg.logic.registration.click_polarity import (
+    CLEAR_WITH_WINNER_GC,
+    ClickPolarity,
+    confirms,
+    judged_also,
+    polarity_at_clicks,
+)
+from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
+from carmreg.logic.registration.image_starts import image_starts
+from carmreg.logic.registration.labelling_fit import (
+    FitContext,
+    LabellingFit,
+    plan_labelling,
+    state_context,
+    unshaded_context,
+)
+from carmreg.logic.registration.levels import plan_contest
+from carmreg.logic.registration.preflight import MIN_CLICKS
+from carmreg.logic.registration.spatial import spatial_search
+from carmreg.logic.registration.state import RegistrationState
+
+
+class AppearanceChecks:
+    """The appearance checks of one ``CarmRegLogic`` (module docstring): ``report(stage, fraction, message)`` its
+    progress hook (which raises ``CancelledError`` on a cancel), ``should_stop()`` its cancel check inside a
+    registration."""
+
+    def __init__(self, report, should_stop):
+        self._report = report
+        self._should_stop = should_stop
+
+    def _context(self, state: RegistrationState, line_integral: np.ndarray) -> FitContext:
+        """A labelling's registration on ``line_integral`` from the nominal pose, without a progress hook."""
+        return state_context(state, line_integral, 0.0, 0.0, self._should_stop)
+
+    def decide(self, state: RegistrationState) -> dict:
+        """Every check of the module docstring, in order, on ``state`` after the database stage: sets
+        ``state.appearance`` (with its evidence), ``click_polarity`` or ``image_polarity``, the X-ray's attenuation
+        image converted with the verdict and the appearance warnings; returns ``appearance.as_dict()`` (result.json
+        ``appearance``)."""
+        p, xray = state.parameters, state.xray
+        rows, cols = state.database.drrs.shape[2:]
+        drrs = state.database.drrs.reshape(-1, rows, cols)
+        scores, gc_by_storage = database_gc(xray.pixels, state.mask, drrs, state.coarse_factor)
+        refined, refined_by = None, REFINED_AT_DATABASE_POSES
+        state.click_polarity = self._polarity_at_clicks(state, gc_by_storage)
+        fits = None
+        if state.click_polarity is not None:
+            refined, refined_by, fits = state.click_polarity.scores, REFINED_AT_CLICKS, state.click_polarity.fits
+        elif p.polarity == "auto":
+            state.image_polarity = self.polarity_from_image(state, gc_by_storage)
+            refined = state.image_polarity.scores
+        state.appearance = a = decide_polarity(scores, refined, p.polarity, xray.bone_dark,
+                                               xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                                               refined_by=refined_by, fits=fits)
+        if state.click_polarity is not None:
+            a.scores["at_clicks"] = state.click_polarity.as_dict()
+        if state.image_polarity is not None:
+            a.scores["without_clicks"] = state.image_polarity.as_dict()
+        a.set_storage(gc_by_storage)
+        a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
+                                             a.bone_dark))
+        self._use_appearance(state, a, gc_by_storage)
+        self._orientation_at_clicks(state, "spatial")
+        self._polarity_on_mirror(state, gc_by_storage)
+        self._polarity_on_mirror_without_clicks(state, gc_by_storage)
+        self._polarity_without_shading(state, gc_by_storage)
+        self._appearance_warnings(state)
+        return state.appearance.as_dict()
+
+    def _polarity_on_mirror(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """With clicks, and a polarity the image left unclear at them (the user did not set it): the polarity judged
+        again on the image mirrored left-right, the clicks mirrored with it, exactly as at the clicks
+        (``polarity_at_clicks``; a mirrored display shows no aligned spine as stored, under either polarity). Taken
+        only when that verdict is clear and the mirror then leads the stored image under that polarity by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
+        ``Appearance.set_orientation_at_clicks``): the display is mirrored, the image refused, no level answer
+        confident. Otherwise the appearance stays as it was, with the mirror's evidence recorded
+        (``scores["on_mirror"]``)."""
+        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        if cp is None or a.clear or p.polarity in POLARITIES:
+            return
+        contexts = {polarity: oriented_context(ctx, MIRROR)
+                    for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
+        clicks = turned_clicks(state.xray_landmarks, MIRROR, xray.size_px)
+        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.9, f"telling bone-dark from bone-bright on the image mirrored left-right "
+                                         f"({done + 1} of {total})")
+
+        mirrored = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
+        a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
+        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR, mirrored.fits)
+        if not again.clear:
+            return
+        again.scores.update(at_clicks=a.scores["at_clicks"], on_mirror=on_mirror)
+        self._database_verdicts(state, again, gc_by_storage)
+        again.set_orientation_at_clicks(stored_against_turned(cp, mirrored, MIRROR, again.polarity,
+                                                              p.identify.rule).as_dict())
+        if again.orientation == MIRROR:
+            self._use_appearance(state, again, gc_by_storage)
+
+    def _polarity_on_mirror_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did
+        not set the polarity): each polarity refined again on the image mirrored left-right, as on the image as
+        stored (``polarity_from_image``). When the mirror's leading polarity p then gives
+        ``GC_mirror(p) - GC_stored(p) >= REFUSE_ORIENTATION_AT_CLICKS_GC`` (each the best refined GC under p), the
+        display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the image refused
+        (``Appearance.set_orientation_on_mirror``). Otherwise the appearance stays as it was, with the mirror's
+        evidence recorded (``scores["without_clicks_on_mirror"]``). The levels stage keeps the image as stored (a
+        refused image names no level)."""
+        a, p, stored = state.appearance, state.parameters, state.image_polarity
+        if (stored is None or a.clear or p.polarity in POLARITIES
+                or (a.orientation == "as-stored" and a.orientation_clear)):
+            return
+        mirrored = self.polarity_from_image(state, gc_by_storage, MIRROR)
+        a.scores["without_clicks_on_mirror"] = on_mirror = mirrored.as_dict()
+        seen, _ = image_polarity(mirrored.scores)
+        gc = {"as-stored": stored.scores[seen], MIRROR: mirrored.scores[seen]}
+        if gc[MIRROR] - gc["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
+            return
+        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR_WITHOUT_CLICKS)
+        again.scores.update(without_clicks=a.scores["without_clicks"], without_clicks_on_mirror=on_mirror)
+        self._database_verdicts(state, again, gc_by_storage)
+        again.set_orientation_on_mirror(gc)
+        self._use_appearance(state, again, gc_by_storage)
+
+    def _polarity_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:
+        """Without clicks, a polarity still unclear on an image taken as stored (the user did not set it): the
+        second opinion. Each polarity judged again exactly as by ``polarity_from_image``, but the X-ray, the database
+        and every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
+        (``image.shading``): on a large patient the shading outweighs the faint bone, and on a tilted view the
+        plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When it leads with
+        the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``: no level answer is
+        proposed on it), and the levels stage compares the images the same way, reusing its refinements
+        (``_levels``); otherwise the appearance stays as it was. Either way
+        ``scores["without_clicks_without_shading"]`` records it."""
+        a, p = state.appearance, state.parameters
+        if state.image_polarity is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
+            return
+        unshaded = self.polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
+        a.scores["without_clicks_without_shading"] = unshaded.as_dict()
+        again = self._polarity_again(state, unshaded.scores, REFINED_WITHOUT_SHADING)
+        if again.polarity == a.polarity:
+            return
+        again.as_second_opinion(a)
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
+        self._database_verdicts(state, again, gc_by_storage)
+        state.image_polarity = unshaded
+        self._use_appearance(state, again, gc_by_storage)
+
+    @staticmethod
+    def _polarity_again(state: RegistrationState, refined: dict, refined_by: str, fits: dict | None = None):
+        """``decide_polarity`` again, on the database's scores and ``refined`` (measured ``refined_by``; ``fits`` at
+        the clicks), with the user's choice and the file's header as the first verdict had them."""
+        xray = state.xray
+        return decide_polarity(state.appearance.scores["database"], refined, state.parameters.polarity,
+                               xray.bone_dark, xray.sources.get("bone_dark", ""), header_explicit=xray.polarity_stated,
+                               refined_by=refined_by, fits=fits)
+
+    @staticmethod
+    def _database_verdicts(state: RegistrationState, again, gc_by_storage: dict) -> None:
+        """The storage and the database's orientation verdict of a polarity verdict taken ``again`` (the orientation
+        scores of the appearance in use when the polarity is the same, else measured under the new one)."""
+        a, xray = state.appearance, state.xray
+        again.set_storage(gc_by_storage)
+        again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
+            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
+
+    @classmethod
+    def _use_appearance(cls, state: RegistrationState, a, gc_by_storage: dict) -> None:
+        """Take ``a`` as the X-ray's appearance: the spatial stage's GC map when already computed (``_known_gc``)
+        and the X-ray's attenuation image converted with ``a``'s polarity and storage."""
+        state.appearance = a
+        state.known_gc = cls._known_gc(state, gc_by_storage)
+        state.xray_line_integral = attenuation(state.xray.pixels, state.mask, a.bone_dark, a.storage)
+
+    @staticmethod
+    def _appearance_warnings(state: RegistrationState) -> None:
+        """The warnings on the X-ray's appearance, replacing earlier ones (the levels stage may judge it again)."""
+        a = state.appearance
+        state.warnings[:] = [w for w in state.warnings if not w.startswith(("X-ray polarity:", "X-ray orientation:"))]
+        if not a.clear:
+            state.warnings.append(f"X-ray polarity: {a.note}")
+        if a.orientation == "as-stored" and not a.orientation_clear:
+            state.warnings.append("X-ray orientation: the image matches the CT mirrored or turned about as well as "
+                                  "as stored; check that the display is not mirrored or rotated")
+
+    def with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
+        """The levels stage's ``judge_appearance``: whether the appearance is trusted once the contest's winner is
+        judged at the clicks too. Only for an image taken as stored (a refused orientation stays refused) whose
+        judged labellings did not include the winner: it is registered under both polarities as the leaders were
+        (``click_polarity.judged_also``). When the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC``
+        (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict stays one), that verdict is
+        taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
+        lead: the winner was chosen on the image as stored and as converted, so the evidence leans toward both.
+        Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
+        a, cp, p = state.appearance, state.click_polarity, state.parameters
+        a.scores.pop("at_clicks_with_winner", None)
+        if cp is None or a.orientation != "as-stored" or list(winner.labels) in [list(lb) for lb in cp.labels]:
+            return a.trusted
+        contexts = self._polarity_contexts(state, cp.dark_storage)
+        planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
+        self._report("levels", 0.99, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
+        extended = judged_also(contexts, cp, planned, p.identify.rule)
+        again = self._polarity_again(state, extended.scores, REFINED_AT_CLICKS, extended.fits)
+        if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
+            a.scores["at_clicks_with_winner"] = extended.as_dict()
+            return a.trusted
+        kept = (copy.deepcopy(a), cp, list(state.warnings))
+        try:
+            a.take_polarity_verdict(again, f"the levels' winner {', '.join(winner.labels)}", CLEAR_WITH_WINNER_GC)
+            a.scores["at_clicks"] = extended.as_dict()
+            state.click_polarity = extended
+            a.set_orientation(a.orientation_scores)  # the database's verdict, which the clicks' may not overrule
+            self._orientation_at_clicks(state, "levels", clear_gc=CLEAR_WITH_WINNER_GC)
+            self._appearance_warnings(state)
+        except BaseException:
+            state.appearance, state.click_polarity, state.warnings[:] = kept
+            raise
+        return a.trusted
+
+    def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
+        """The leading labellings registered under both polarities (``click_polarity``); None without enough
+        identifiable clicks. A bone-dark image is converted with its better-agreeing storage."""
+        p, clicks = state.parameters, state.xray_landmarks
+        if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
+            return None
+        dark_storage = better_storage(gc_by_storage)
+        contexts = self._polarity_contexts(state, dark_storage)
+        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
+                         f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
+
+        return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
+
+    @staticmethod
+    def _known_gc(state: RegistrationState, gc_by_storage: dict) -> np.ndarray | None:
+        """The spatial stage's GC map when already computed: the chosen bone-dark conversion's (``database_gc``),
+        or the chosen polarity's map of the check without clicks."""
+        a, checked = state.appearance, state.image_polarity
+        if a.bone_dark:
+            return gc_by_storage[a.storage]
+        if checked is not None and a.polarity in checked.maps and state.parameters.metric == "gc":
+            return checked.maps[a.polarity].reshape(-1)
+        return None
+
+    def _polarity_contexts(self, state: RegistrationState, dark_storage: str) -> dict:
+        """{polarity: FitContext} on the X-ray converted as that polarity (``_polarity_image``), without a progress
+        hook: where the polarity checks (at the clicks, and without clicks) register."""
+        return {polarity: self._context(state, self._polarity_image(state, polarity, dark_storage))
+                for polarity in POLARITIES}
+
+    @staticmethod
+    def _polarity_image(state: RegistrationState, polarity: str, dark_storage: str) -> np.ndarray:
+        """The X-ray's attenuation image if it were ``polarity``: bone dark converted with ``dark_storage``,
+        bone bright as a log display (the only storage that shows bone bright)."""
+        dark = polarity == "bone-dark"
+        return attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
+
+    def _orientation_at_clicks(self, state: RegistrationState, stage: str, clear_gc: float | None = None) -> None:
+        """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
+        judged where the clicks put the CT (``click_orientation``), which then decides."""
+        a, cp = state.appearance, state.click_polarity
+        if cp is None or not a.clear or a.polarity not in cp.registered:
+            return
+        base = self._context(state, state.xray_line_integral)
+        contexts = {o: oriented_context(base, o) for o in rival_orientations(a.orientation_scores)}
+        self._report(stage, 0.95, "judging the display's orientation at the clicks")
+        memo = state.turned_fits.setdefault((a.polarity, a.storage), {})  # the image the contexts show
+        evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
+                                         state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named,
+                                         memo=memo)
+        a.set_orientation_at_clicks(evidence.as_dict(), clear_gc)
+
+    def polarity_from_image(self, state: RegistrationState, gc_by_storage: dict, orientation: str = "as-stored",
+                             without_shading_mm: float = 0.0) -> ImagePolarity:
+        """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``), the
+        starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage.
+        ``orientation``: judged on that orientation of the image (``oriented_context``; the database's GC map, which
+        is the stored image's, is then not reused). ``without_shading_mm`` > 0: the X-ray, the database and the
+        refinements' DRRs compared without their shading above that scale (``image.shading``)."""
+        dark_storage = better_storage(gc_by_storage)
+        contexts = self._polarity_contexts(state, dark_storage)
+        if orientation != "as-stored":
+            contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
+        if without_shading_mm > 0:
+            contexts = {polarity: unshaded_context(ctx, without_shading_mm) for polarity, ctx in contexts.items()}
+        stored_gc = gc_by_storage[dark_storage] if orientation == "as-stored" else None
+        starts, maps = self._image_alone_starts(state, contexts, stored_gc, without_shading_mm)
+
+        where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"
+        if without_shading_mm > 0:
+            where += f" without its shading above {without_shading_mm:g} mm"
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
+                         f"telling bone-dark from bone-bright{where} ({done + 1} of {total})")
+
+        return polarity_from_image(contexts, starts, maps, progress, without_shading_mm)
+
+    @staticmethod
+    def _image_alone_starts(state: RegistrationState, contexts: dict, stored_gc: np.ndarray | None,
+                            without_shading_mm: float) -> tuple[dict, dict]:
+        """({polarity: [(6,) start]}, {polarity: spatial map}) of each context's image on the coarse database
+        (``image_starts``, ``spatial_search``). ``stored_gc``: the bone-dark image's map when already computed
+        (``database_gc``), else None. ``without_shading_mm`` > 0: the database and the images less their shading,
+        and no map (only the plain image's serves the spatial stage)."""
+        p, db = state.parameters, state.database
+        rows, cols = db.drrs.shape[2:]
+        mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
+        remove = shading_remover(mask_coarse, without_shading_mm / db.intrinsics.pixel_spacing_mm[0])
+        if without_shading_mm > 0:
+            db = dataclasses.replace(db, drrs=remove(db.drrs))
+        starts, maps = {}, {}
+        for polarity, ctx in contexts.items():
+            coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
+            if without_shading_mm > 0:
+                coarse = remove(coarse)
+            else:
+                known = {"gc": stored_gc} if polarity == "bone-dark" and stored_gc is not None else None
+                maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
+                                                known=known).maps[p.metric]
+            starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
+        return starts, maps
