@@ -6,7 +6,8 @@
 
 Stages (each a plain function in its own module, returning a small result):
   database  - DRRs of the 4 mm mu level over a (ty, tz) grid at tx = 0 (``database``, Algorithm 1), cached;
-  spatial   - similarity of the coarse X-ray with every DRR -> (ty, tz) (``spatial_search``, Algorithm 2);
+  spatial   - the X-ray's polarity, storage and orientation decided against the CT (``appearance_checks``), then
+              similarity of the coarse X-ray with every DRR -> (ty, tz) (``spatial_search``, Algorithm 2);
   levels    - beyond the paper: which vertebra is which (``level_identify``). Every plausible labelling of the
               clicks (unnamed clicks: every run of consecutive CT levels; named clicks: the names and the names
               shifted +-1, +-2 levels) is registered and scored by image similarity and landmark fit; the

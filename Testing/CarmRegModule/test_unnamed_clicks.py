@@ -259,6 +259,10 @@ def test_assigned_names_show_on_the_clicks_and_can_be_accepted_and_undone(xray_w
     assert texts == [f"?1 {ARROW} T10", f"?2 {ARROW} T12", "T11"]
     coloured = [spec.color for spec in view.markers().values() if ARROW in spec.text]
     assert coloured and all(c == "#ffa94d" for c in coloured)  # ambiguous: amber
+    # the overlay: every name the image did not confirm carries a "?", the fitted levels in amber, not green
+    drawn = [spec for spec in win.overlay_view.markers().values() if spec.key[0] == "level"]
+    assert len(drawn) == 3 and all(spec.text.startswith(f"{spec.key[1]}?") for spec in drawn)
+    assert all(spec.color == "#ffa94d" for spec in drawn if spec.style == "fitted")
     # the result panel: mode, status colour, message, margin, runner-up, assigned names, hypotheses
     assert "partly named" in rp.level_mode_label.text()
     assert rp.level_status_label.text() == "AMBIGUOUS" and rp.level_status_color == "#ffa94d"
