@@ -16,13 +16,18 @@ DICOM tags used (all optional):
   the patient plane (detector spacing / magnification) rather than measured at the detector.
 - ``EstimatedRadiographicMagnificationFactor`` (0018,1114), positioner angles, field-of-view flip and
   rotation: recorded in ``meta`` only.
-- ``PhotometricInterpretation`` MONOCHROME1 (minimum shown white) is inverted so that larger = brighter.
+- ``PhotometricInterpretation`` MONOCHROME1 (minimum shown white) is inverted so that larger = brighter - except
+  when ``PixelIntensityRelationship`` (0028,1040) is LIN with sign +1: the stored values are then the X-ray
+  intensity itself, whose -log is the attenuation (``image.prepare``, linear-intensity storage), while the
+  inverted values are neither intensity nor its log (a flat-panel case of the appearance benchmark: GC 0.79
+  against 0.89, levels not clicked 3.6-3.8 mm against 0.4-0.6 mm with the values kept); they are kept as stored
+  and the image is shown bone dark (``meta["note_linear_intensity"]``).
 
 Pixels
 ------
-``XrayImage.pixels`` is float32 ``image[row, column]`` holding the stored values after the MONOCHROME1
-inversion (so larger values are brighter as displayed) and the DICOM modality LUT (``RescaleSlope`` x value +
-``RescaleIntercept``, when the file has them; recorded in ``meta["modality_lut"]``).
+``XrayImage.pixels`` is float32 ``image[row, column]`` holding the stored values after the MONOCHROME1 inversion (so
+larger values are brighter as displayed; not for linear intensities, above) and the DICOM modality LUT
+(``RescaleSlope`` x value + ``RescaleIntercept``, when the file has them; recorded in ``meta["modality_lut"]``).
 
 Display polarity ``bone_dark``: what the file says
 ---------------------------------------------------

@@ -47,6 +47,10 @@ def read_dicom(path: Path, frame: int | None) -> XrayParts:
         pixels = grey_from_channels(pixels, path, meta)
     pixels = pixels.astype(np.float32)
     monochrome1 = meta["photometric"].upper() == "MONOCHROME1"
+    if monochrome1 and _stores_linear_intensity(ds):
+        monochrome1 = False  # the intensities as stored: -log of them is the attenuation (``xray``, Pixels)
+        meta["note_linear_intensity"] = ("MONOCHROME1 with a linear intensity relationship (LIN, sign +1): the "
+                                         "stored intensities kept, not inverted, so the image is shown bone dark")
     if monochrome1:
         pixels = _invert_monochrome1(pixels, ds, path)
         meta["note_inverted"] = "MONOCHROME1: stored values inverted so that larger = brighter"
@@ -120,6 +124,13 @@ def _dicom_frames(ds, path: Path) -> np.ndarray:
         raise InputFileError(f"{path}: unexpected pixel array shape {pixels.shape} for {n_frames} frame(s) "
                              f"of {samples} sample(s)")
     return pixels
+
+
+def _stores_linear_intensity(ds) -> bool:
+    """Whether the stored values are the X-ray intensity itself: PixelIntensityRelationship (0028,1040) LIN with
+    PixelIntensityRelationshipSign (0028,1041) +1 (values rise with the X-ray reaching the detector)."""
+    relationship = str(ds.get("PixelIntensityRelationship", "")).strip().upper()
+    return relationship == "LIN" and ds.get("PixelIntensityRelationshipSign") == 1
 
 
 def _invert_monochrome1(pixels: np.ndarray, ds, path: Path) -> np.ndarray:

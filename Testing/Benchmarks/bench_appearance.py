@@ -107,6 +107,16 @@ class CaseMaker:
         return ct_path, lm_path, list(centroids.sorted().labels)
 
 
+def truth_polarity(truth: dict) -> str:
+    """The polarity of the image as CarmReg's reader holds it: as displayed, except a MONOCHROME1 DICOM storing
+    linear intensity (LIN, sign +1), whose stored intensities the reader keeps since stop 30 (``io.xray``): bone
+    dark whatever its display."""
+    look = truth.get("look") or {}
+    if look.get("file") == "dcm-mono1" and look.get("storage") == "linear":
+        return "bone-dark"
+    return "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
+
+
 def write_variant(scene: app.Scene, variant: app.Variant, case: int, folder: Path) -> dict:
     """Render and store one variant of a case: the X-ray file, truth.json, clicks; returns the case record."""
     base = app.base_look(np.random.default_rng(9000 + case), scene.detector)
@@ -253,7 +263,7 @@ def _run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
            "stderr": err if code not in (0, 1) else ""}
     row.update(score(job["mode"], code, result, job["truth"], job["given"], job["centroids"]))
     decided, source = polarity_read(result or {}, job["xray"], job["detector"]) if result else (None, "no result")
-    truth_pol = "bone-bright" if job["truth"]["bone_bright_displayed"] else "bone-dark"
+    truth_pol = truth_polarity(job["truth"])
     row.update(polarity=decided, polarity_source=source, polarity_truth=truth_pol,
                polarity_right=None if decided is None else decided == truth_pol)
     return row
@@ -427,7 +437,7 @@ def rescore(rows: list[dict], work: Path) -> list[dict]:
         new.update(score(r["mode"], r.get("exit"), result, truth, r["given"], centroids[r["ct"]]))
         detector = app.DETECTORS[app.VARIANTS[r["variant"]].detector]
         decided, source = polarity_read(result, xrays[0], detector) if result else (None, "no result")
-        truth_pol = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
+        truth_pol = truth_polarity(truth)
         new.update(polarity=decided, polarity_source=source, polarity_truth=truth_pol,
                    polarity_right=None if decided is None else decided == truth_pol)
         out.append(new)

@@ -128,9 +128,9 @@ def test_stored_files_load_through_the_product_reader(tmp_path, kind, bright):
     assert x.size_px == (96, 80)
     assert x.intrinsics.sdd_mm == pytest.approx(1000.0)
     assert x.intrinsics.pixel_spacing_mm == pytest.approx((1.2, 1.2))
-    if kind == "dcm-mono1":  # the reader inverts MONOCHROME1: shown bone bright, and says so from the tags
-        np.testing.assert_array_equal(x.pixels, 65535.0 - pixels)
-        assert x.bone_dark is False
+    if kind == "dcm-mono1":  # MONOCHROME1 storing linear intensity (LIN, +1): kept as stored, bone dark
+        np.testing.assert_array_equal(x.pixels, pixels.astype(np.float32))
+        assert x.bone_dark is True and "note_linear_intensity" in x.meta
     elif kind == "jpeg8":
         assert np.abs(x.pixels - pixels.astype(np.float32)).mean() < 6.0  # lossy
     else:
@@ -138,4 +138,4 @@ def test_stored_files_load_through_the_product_reader(tmp_path, kind, bright):
     if kind == "dcm-sign":
         assert x.bone_dark is True and "1041" in x.sources["bone_dark"]
     shown = x.pixels
-    assert (shown[BONE].mean() > shown[SOFT].mean()) == bright
+    assert (shown[BONE].mean() > shown[SOFT].mean()) == (bright and kind != "dcm-mono1")  # mono1: kept, dark

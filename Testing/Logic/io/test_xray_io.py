@@ -118,11 +118,26 @@ def test_monochrome1_inverted(xa_path, pixels, bits):
     ds = pydicom.dcmread(xa_path)
     ds.PixelData = stored.astype("<u2").tobytes()
     ds.PhotometricInterpretation, ds.BitsStored, ds.HighBit = "MONOCHROME1", bits, bits - 1
+    ds.PixelIntensityRelationship = "LOG"
     ds.save_as(xa_path)
     image = load_xray(xa_path)
     np.testing.assert_array_equal(image.pixels, (2**bits - 1) - stored.astype(np.float32))
     assert image.bone_dark is False  # sign +1 (bone dark when stored) flipped by MONOCHROME1
     assert "MONOCHROME1" in image.sources["bone_dark"] and "note_inverted" in image.meta
+
+
+@pytest.mark.parametrize("relationship, sign, kept", [("LIN", 1, True), ("LIN", -1, False), ("LOG", 1, False)])
+def test_monochrome1_linear_intensities_are_kept_as_stored(xa_path, pixels, relationship, sign, kept):
+    """MONOCHROME1 with LIN and sign +1 stores the X-ray intensity itself, whose -log is the attenuation: the
+    values are kept (shown bone dark, as the sign says), not inverted into something neither linear nor log."""
+    stored = pixels.astype(np.uint16)
+    _edit(xa_path, PhotometricInterpretation="MONOCHROME1", PixelIntensityRelationship=relationship,
+          PixelIntensityRelationshipSign=sign)
+    image = load_xray(xa_path)
+    expected = stored.astype(np.float32) if kept else 65535.0 - stored.astype(np.float32)
+    np.testing.assert_array_equal(image.pixels, expected)
+    assert image.bone_dark is (kept or (sign == -1))  # kept: bone dark; inverted: the sign flipped
+    assert ("note_linear_intensity" in image.meta) is kept and ("note_inverted" in image.meta) is not kept
 
 
 @pytest.mark.parametrize("modality, sign, expected", [("XA", None, True), ("RF", None, True),
