@@ -47,18 +47,18 @@ def read_dicom(path: Path, frame: int | None) -> XrayParts:
         pixels = grey_from_channels(pixels, path, meta)
     pixels = pixels.astype(np.float32)
     monochrome1 = meta["photometric"].upper() == "MONOCHROME1"
-    if monochrome1 and _stores_linear_intensity(ds):
-        monochrome1 = False  # the intensities as stored: -log of them is the attenuation (``xray``, Pixels)
+    inverted = monochrome1 and not _stores_linear_intensity(ds)
+    if monochrome1 and not inverted:  # the intensities as stored: -log of them is the attenuation (``xray``)
         meta["note_linear_intensity"] = ("MONOCHROME1 with a linear intensity relationship (LIN, sign +1): the "
                                          "stored intensities kept, not inverted, so the image is shown bone dark")
-    if monochrome1:
+    if inverted:
         pixels = _invert_monochrome1(pixels, ds, path)
         meta["note_inverted"] = "MONOCHROME1: stored values inverted so that larger = brighter"
     pixels = _modality_lut(pixels, ds, frame, path, meta)
     if dropped:
         meta["warning_unreadable_elements"] = ", ".join(dropped[:6]) + (" ..." if len(dropped) > 6 else "")
     part = XrayParts(pixels, True, meta=meta)
-    part.bone_dark, part.sources["bone_dark"] = _dicom_bone_dark(ds, modality, monochrome1)
+    part.bone_dark, part.sources["bone_dark"] = _dicom_bone_dark(ds, modality, inverted)
     _dicom_geometry(ds, part, frame, path)
     return part
 
@@ -142,6 +142,7 @@ def _invert_monochrome1(pixels: np.ndarray, ds, path: Path) -> np.ndarray:
 
 
 def _dicom_bone_dark(ds, modality: str, monochrome1: bool) -> tuple[bool, str]:
+    """The header's polarity of the pixels as read: the sign's, flipped when ``monochrome1`` inverted them."""
     sign = ds.get("PixelIntensityRelationshipSign")
     if isinstance(sign, int) and sign in (1, -1):
         dark = (int(sign) == 1) != monochrome1

@@ -365,13 +365,14 @@ class AppearanceChecks:
         p, db = state.parameters, state.database
         rows, cols = db.drrs.shape[2:]
         mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
-        remove = shading_remover(mask_coarse, without_shading_mm / db.intrinsics.pixel_spacing_mm[0])
+        remove = None
         if without_shading_mm > 0:
+            remove = shading_remover(mask_coarse, without_shading_mm / db.intrinsics.pixel_spacing_mm[0])
             db = dataclasses.replace(db, drrs=remove(db.drrs))
         starts, maps = {}, {}
         for polarity, ctx in contexts.items():
             coarse = bin_image_to(ctx.xray_line_integral, state.coarse_factor, (rows, cols))
-            if without_shading_mm > 0:
+            if remove is not None:
                 coarse = remove(coarse)
             else:
                 known = {"gc": stored_gc} if polarity == "bone-dark" and stored_gc is not None else None

@@ -51,12 +51,12 @@ def prepare(case: Path, variant: str, mode: str, inside: dict, work: Path) -> li
         Image.fromarray(np.where(a > 0, 65535 - a, 0).astype(np.uint16)).save(work / "xray.png")
         xray = work / "xray.png"
     clicks = d["xray_points_px"]
-    order = sorted(inside, key=lambda n: -inside[n][2])  # head to feet
-    given = {"unnamed": list(clicks.values()), "named": clicks,
-             "one-level-off": {order[order.index(k) + 1]: v for k, v in clicks.items()}}.get(mode)
-    if given is None:
-        clicks_args = ["--no-clicks"]
-    else:
+    clicks_args = ["--no-clicks"]
+    if mode != "none":
+        given = list(clicks.values()) if mode == "unnamed" else dict(clicks)
+        if mode == "one-level-off":
+            order = sorted(inside, key=lambda n: -inside[n][2])  # head to feet
+            given = {order[order.index(k) + 1]: v for k, v in clicks.items()}
         (work / "clicks.json").write_text(json.dumps(given))
         clicks_args = ["--xray-landmarks", str(work / "clicks.json")]
     intr = d["intrinsics"]
