@@ -174,6 +174,14 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> La
     return _refine_from(ctx, fit, np.asarray(start_pose, float))
 
 
+def restart(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+    """A fresh image refinement of a registered labelling from its own refined pose: the refinement's full step
+    sizes and the next seed (another random stream), so it can leave the basin its earlier search settled in; the
+    better refinement is kept."""
+    fresh = dataclasses.replace(ctx, refine=dataclasses.replace(ctx.refine, seed=ctx.refine.seed + 1))
+    return refit_from(fresh, fit, fit.pose.copy())
+
+
 def state_context(state, line_integral: np.ndarray, ty_mm: float, tz_mm: float, should_stop,
                   on_labelling=None) -> FitContext:
     """What every labelling's registration on ``line_integral`` shares, from a ``RegistrationState``: its pyramid's

@@ -16,7 +16,8 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
      clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
      clicks must fit the winner itself (seen: labellings five levels off won at 6 mm);
-   - stability: the leading two labellings were refitted, each from the other's pose, and the same one led;
+   - stability: the leading two labellings were refitted, each from the other's pose (and, when the leader
+     explained the image poorly, restarted afresh: ``levels._restart_leaders``), and the same one led;
    - appearance: the X-ray's polarity was clear (or set by the user and not contradicted; a file stating its
      polarity and an image disagreeing is a conflict) and it matches the CT best as stored by a clear lead, not
      mirrored or turned (``image.appearance.trusted_appearance``).
@@ -120,7 +121,8 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
                            f"{', '.join(e.rival_labels) or 'its rival'} ({e.rival_mpde_mm:.1f} mm)")
     checks["stability"] = {"ok": bool(e.stable)}
     if not e.stable:
-        reasons.append("the leading labelling changed when the two best were refitted from each other's pose")
+        reasons.append("the leading labelling changed when the two best were searched again (from each other's "
+                       "pose, or afresh)")
     checks["appearance"] = {"ok": bool(e.appearance_ok)}
     if not e.appearance_ok:
         reasons.append("the X-ray's appearance is not clear (bone dark or bright, or a mirrored or turned display)")

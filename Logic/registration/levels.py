@@ -24,7 +24,10 @@ or a refit), and completed in full should its lower bound not clear that rival a
 verdict is the one full refinements give. Finally the
 leading two are each refitted from the other's refined pose (a second, independent start; each keeps its better
 refinement), so neither loses to a local optimum of its optimiser; if the lead changes hands, the answer is not
-stable (``level_confidence``).
+stable (``level_confidence``). Should the leader still explain the image poorly (the confidence rule's floor or
+cap), the leading two are restarted once more, each from its own pose with a fresh search (``_restart_leaders``):
+a right labelling whose refinement stopped in a local optimum would otherwise be flagged by the floor; a lead that
+changes hands there is not stable either.
 
 The X-ray's appearance (polarity, orientation) was judged before the contest, at the poses of its most plausible
 labellings (``click_polarity``, ``click_orientation``). When that left it unclear, the contest's winner was not
@@ -57,6 +60,7 @@ from carmreg.logic.registration.labelling_fit import (
     fit_labelling,
     plan_labelling,
     refit_from,
+    restart,
     unlabelled_fit,
 )
 from carmreg.logic.registration.labellings import (
@@ -82,6 +86,7 @@ class IdentifyParameters:
     max_shift: int = 2                      # named clicks: shifts tried each way
     image_starts: int = 3                   # no clicks: spatial-map peaks refined (``image_starts``)
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
+    restart_poor_leaders: bool = True       # and restart both when the leader explains the image poorly
     stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
 
@@ -187,12 +192,13 @@ def _settle(ctx: FitContext, fits: list[LabellingFit], keep: int | None) -> None
         complete(ctx, min(todo, key=lambda f: lower_bound(f.score, f.stopped_at)))
 
 
-def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
+def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule, judged: bool = False) -> bool:
     """The labelling passes the confidence rule's absolute checks on its own: image agreement at the floor, clicks
     fitted within the cap (``level_confidence.check_results`` without a rival). The agreement is the GC the contest
     runs on (not ``agreement``'s second opinion): this decides only whether to search wider, and a wider search is
-    never wrong."""
-    checks, _ = check_results(dataclasses.replace(Evidence.of(fit, None, True, True), gc=fit.similarity), rule)
+    never wrong. ``judged``: the agreement the verdict will judge (``LabellingFit.agreement``; measure it first)."""
+    gc = fit.agreement if judged else fit.similarity
+    checks, _ = check_results(dataclasses.replace(Evidence.of(fit, None, True, True), gc=gc), rule)
     return checks["image_agreement"]["ok"] and checks.get("landmark_fit", {"ok": True})["ok"]
 
 
@@ -206,6 +212,22 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     refit_from(ctx, a, pose_b)
     refit_from(ctx, b, pose_a)
     return min((f for f in fits if f.refined), key=lambda f: f.score) is a
+
+
+def _restart_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
+    """Restart the image refinement of each of the leading two afresh from its own refined pose
+    (``labelling_fit.restart``), each keeping its better refinement; True when the same labelling still leads.
+    Called when the leader explains the image poorly (``_explains_the_image``): a right labelling stuck in a local
+    optimum of its refinement looks exactly like that (seen: an intensifier image of the second CT whose right
+    labelling stopped at GC 0.36, clicks 3.2 mm, where a restart reached 0.59 and 1.7 mm, its rival none the
+    better: 0.15 -> 0.15). Both leaders are restarted, so the contest stays fair."""
+    ranked = sorted((f for f in fits if f.refined), key=lambda f: f.score)
+    if not ranked:
+        return True
+    leader = ranked[0]
+    for f in ranked[:2]:
+        restart(ctx, f)
+    return min((f for f in fits if f.refined), key=lambda f: f.score) is leader
 
 
 @dataclass
@@ -268,6 +290,12 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
+        _settle(ctx, fits, keep)
+    best = min((f for f in fits if f.refined), key=lambda f: f.score)
+    measure_agreement(ctx, [best])
+    if p.restart_poor_leaders and not _explains_the_image(best, p.rule, judged=True):
+        stable = _restart_leaders(ctx, fits) and stable
+        _contest(ctx, fits, [], keep, stop)
         _settle(ctx, fits, keep)
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)

@@ -175,10 +175,13 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
 
 
 def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11,
-                    appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70) -> list:
+                    appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70,
+                    restarted: dict | None = None, restarts: list | None = None) -> list:
     """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
     0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
-    indices registered, in order. The contest's control flow is the product's own."""
+    indices registered, in order. ``restarted``: {index: (GC, score)} a restart (``labelling_fit.restart``) of that
+    labelling reaches (others: unchanged); ``restarts`` collects the indices restarted. The contest's control flow
+    is the product's own."""
     import carmreg.logic.registration.levels as levels
 
     fits = [LabellingFit([f"X{i}"], i, np.zeros((1, 3)), np.zeros((1, 2))) for i in range(n)]
@@ -193,11 +196,21 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
                                   objective_end=(0.30 if good else 0.70) + 0.001 * i)
         return fit
 
+    def restart(ctx, fit):
+        i = fits.index(fit)
+        if restarts is not None:
+            restarts.append(i)
+        if i in (restarted or {}):
+            gc, score = restarted[i]
+            fit.refine = RefineResult(np.zeros(6), 0.0, gc, 1.0, 1, objective_end=score)
+        return fit
+
     plan = levels.ContestPlan("unnamed", fits, list(first), None, [0], np.array([0]))
     monkeypatch.setattr(levels, "plan_contest", lambda *a, **k: plan)
     monkeypatch.setattr(levels, "measure_agreement", lambda ctx, fits: None)  # no image: the GC staged is the agreement
     monkeypatch.setattr(levels, "fit_labelling", register)
     monkeypatch.setattr(levels, "refit_from", register)
+    monkeypatch.setattr(levels, "restart", restart)
     ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))), None, appearance_clear,
                                    judge_appearance=judge_appearance)
     return order, ident
@@ -212,6 +225,37 @@ def test_when_the_most_plausible_labellings_explain_the_image_poorly_every_label
     # when they explain it well (GC 0.50 >= 0.40), the contest stays with them and their neighbours
     order, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.50, first=[1, 2, 3, 4, 5])
     assert sorted(order) == [0, 1, 2, 3, 4, 5] and ident.winner.labels == ["X0"]
+
+
+def test_a_leader_under_the_image_floor_is_restarted_with_its_rival_and_a_restart_that_reaches_the_floor_decides(
+        monkeypatch):
+    """Second-CT intensifier case: the right labelling's refinement stopped at GC 0.36 (flagged by the 0.40 floor);
+    a fresh start reached 0.59. Both leaders are restarted - the winner and the labelling it beat - and the
+    verdict is judged on the better refinements. (Under the floor every labelling is registered; the rival is then
+    X0, the best of the others.)"""
+    restarts = []
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
+                               restarted={5: (0.59, 0.415)}, restarts=restarts)
+    assert sorted(restarts) == [0, 5] and ident.winner.labels == ["X5"] and ident.status == "confident"
+    assert ident.checks["image_agreement"]["gc"] == pytest.approx(0.59)
+    # a restart that does not reach the floor leaves the answer ambiguous, by the floor alone
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
+                               restarted={5: (0.37, 0.64)})
+    assert ident.status == "ambiguous" and not ident.checks["image_agreement"]["ok"]
+    assert ident.checks["stability"]["ok"]
+    # a leader above the floor is not restarted
+    restarts.clear()
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], restarts=restarts)
+    assert restarts == [] and ident.status == "confident"
+
+
+def test_a_restart_that_hands_the_lead_to_the_other_leader_is_not_stable(monkeypatch):
+    """The leader under the floor (X5, GC 0.36) and its rival (X0) restarted: X0 now leads by a clear margin and
+    passes every other check, but a lead that changed hands on a second search is never confident."""
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
+                               restarted={0: (0.60, 0.20)})
+    assert ident.winner.labels == ["X0"] and ident.status == "ambiguous"
+    assert not ident.checks["stability"]["ok"] and ident.checks["image_agreement"]["ok"]
 
 
 def test_an_unclear_appearance_is_judged_again_with_the_contests_winner_which_alone_can_make_it_confident(
