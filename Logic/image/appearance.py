@@ -158,6 +158,7 @@ REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # 
 REFINED_ON_MIRROR_WITHOUT_CLICKS = "refined, on the image mirrored left-right"  # no clicks, on the mirrored display
 WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed above this scale (detector mm)
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
+REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
@@ -220,13 +221,14 @@ class Appearance:
         return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
 
     def as_second_opinion(self, first: Appearance) -> None:
-        """This verdict, found on the image without its shading (``REFINED_WITHOUT_SHADING``), used instead of
-        ``first`` (the image as it is: unclear, leading with the other polarity). Never clear (module docstring)."""
+        """This verdict, found on the image without its shading (``REFINED_WITHOUT_SHADING``, or
+        ``REFINED_AT_CLICKS_WITHOUT_SHADING``), used instead of ``first`` (the image as it is: unclear, leading with
+        the other polarity). Never clear (module docstring)."""
         self.clear = False
         self.note = (f"{self.polarity}, found only from the image without its shading above {WITHOUT_SHADING_MM:g} "
                      f"mm (GC gap {self.clarity_gc:.3f} there; as it is, the image leaned {first.polarity} by "
-                     f"{first.clarity_gc:.3f}): not clear, so no level answer is proposed; set the polarity by hand "
-                     "if the overlay looks inverted")
+                     f"{first.clarity_gc:.3f}): not clear, so no level answer rests on it alone; set the "
+                     "polarity by hand if the overlay looks inverted")
 
     def take_polarity_verdict(self, again: Appearance, evidence: str, threshold_gc: float) -> None:
         """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with
@@ -376,7 +378,7 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         evidence, threshold, by = database, CLEAR_POLARITY_GC, "image"
     else:
         evidence, threshold, by = refined, CLEAR_REFINED_GC, f"image ({refined_by})"
-    if refined is not None and refined_by in (REFINED_AT_CLICKS, REFINED_ON_MIRROR):
+    if refined is not None and refined_by in (REFINED_AT_CLICKS, REFINED_ON_MIRROR, REFINED_AT_CLICKS_WITHOUT_SHADING):
         threshold = CLEAR_CLICKS_GC
         seen, gap, clear = verdict_at_clicks(refined, fits or {})
         why = ("no registration of it keeps the clicks fitted" if not (fits or {}).get(seen) else

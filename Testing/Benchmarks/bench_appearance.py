@@ -313,6 +313,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         lines += ["", f"Mirrored display: {sum(r['status'] == 'confident' for r in flipped)} of {len(flipped)} "
                   "runs CONFIDENT (issue 11: a flipped image is detected and registered, or refused; never named "
                   "with confidence)."]
+    lines += _targets(sel)
     lines += ["", "Levels not clicked: pose-PDE, found vs true pose (detector mm), modes unnamed + named.", "",
               "| variant | levels | median | 95th pct | max | within 5 mm |", "|---|---|---|---|---|---|"]
     for v in variants + ["**all**"]:
@@ -329,6 +330,34 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                   f"built a database left out): median {np.median(secs):.1f} s, max {max(secs):.1f} s over "
                   f"{len(secs)} runs, on a machine shared with other work."]
     return "\n".join(lines) + "\n"
+
+
+def _targets(sel: list[dict]) -> list[str]:
+    """The issue's targets on these runs, in its own terms: every variant for confident wrong answers; the correctly
+    displayed variants (a mirrored display is never to be named) for the rest; levels not clicked split by the
+    image's polarity and by detector."""
+    shown = [r for r in sel if not app.VARIANTS[r["variant"]].changes.get("mirrored")]
+    named = [r for r in shown if r["mode"] == "named"]
+    unnamed = [r for r in shown if r["mode"] == "unnamed"]
+    off = [r for r in sel if r["mode"] == "wrong"]
+    wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in sel)
+    pol = [r for r in sel if r.get("polarity_right") is not None]
+
+    def levels(keep) -> str:
+        vals = np.concatenate([r["unfitted_pde_mm"] for r in shown if r["mode"] in ("unnamed", "named")
+                               and r.get("unfitted_pde_mm") and keep(r["variant"])] or [[]])
+        return f"{np.median(vals):.2f} / {_pct(vals, 95)} mm ({len(vals)})" if len(vals) else "-"
+    return ["", "The issue's targets on these runs (mirrored displays left out of all but the first two):", "",
+            f"- CONFIDENT (no clicks: proposed) and wrong: {wrong} of {len(sel)} runs; names one level off "
+            f"CONFIDENT: {sum(r['status'] == 'confident' for r in off)} of {len(off)}",
+            f"- unnamed clicks named right: {sum(r['answer_right'] for r in unnamed)} / {len(unnamed)} "
+            f"({sum(r['answer_right'] and r['status'] == 'confident' for r in unnamed)} confident); right names "
+            f"flagged (not confident): {sum(r['status'] != 'confident' for r in named)} / {len(named)}",
+            f"- polarity right: {sum(r['polarity_right'] for r in pol)} / {len(pol)}",
+            "- levels not clicked, median / 95th (levels): all " + levels(lambda v: True)
+            + "; bone dark " + levels(lambda v: "-dark-" in v) + "; bone bright " + levels(lambda v: "-bright-" in v)
+            + "; flat panel " + levels(lambda v: v.startswith("fp-"))
+            + "; intensifier without a calibration " + levels(lambda v: v.startswith("ii-"))]
 
 
 def _image_pde_table(sel: list[dict], variants: list[str]) -> list[str]:
