@@ -150,7 +150,7 @@ def test_a_winner_the_clicks_fit_poorly_in_absolute_terms_is_never_confident():
 def test_instability_or_an_unclear_polarity_alone_makes_a_clear_lead_ambiguous():
     a, b = _h(["T10"], 0.50), _h(["T11"], 0.60)
     v = decide([a, b], None, RULE, stable=False)
-    assert v.status == "ambiguous" and "refitted" in v.reasons[0] and not v.checks["stability"]["ok"]
+    assert v.status == "ambiguous" and "searched again" in v.reasons[0] and not v.checks["stability"]["ok"]
     v = decide([a, b], None, RULE, appearance_clear=False)
     assert v.status == "ambiguous" and "appearance" in v.reasons[0]
     assert decide([a, b], b, RULE, appearance_clear=False).status == "ambiguous"  # no contradiction either
