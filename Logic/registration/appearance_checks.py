@@ -45,6 +45,7 @@ from carmreg.logic.image.appearance import (
 )
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import shading_remover
+from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
     orientation_at_clicks,
@@ -136,16 +137,9 @@ class AppearanceChecks:
         a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
         if cp is None or a.clear or p.polarity in POLARITIES:
             return
-        contexts = {polarity: oriented_context(ctx, MIRROR)
-                    for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
-        clicks = turned_clicks(state.xray_landmarks, MIRROR, xray.size_px)
-        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
-
-        def progress(done: int, total: int) -> None:
-            self._report("spatial", 0.9, f"telling bone-dark from bone-bright on the image mirrored left-right "
-                                         f"({done + 1} of {total})")
-
-        mirrored = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
+        mirrored = self._leaders_judged_again(state, lambda ctx: oriented_context(ctx, MIRROR),
+                                              turned_clicks(state.xray_landmarks, MIRROR, xray.size_px),
+                                              "on the image mirrored left-right")
         a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
         again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR, mirrored.fits)
         if not again.clear:
@@ -162,8 +156,8 @@ class AppearanceChecks:
         second opinion. The leading labellings registered again under both polarities exactly as by
         ``polarity_at_clicks``, but the X-ray and every DRR of the refinements compared without their shading above
         ``WITHOUT_SHADING_MM`` (``image.shading``): on a large patient the shading outweighs the faint bone (seen:
-        a bone-bright large patient of the second CT, unclear and taken bone dark at the clicks, 0.14 against 0.17,
-        bone bright there by a clear 0.36). When its verdict is clear (``verdict_at_clicks``) and names the other
+        a bone-bright large patient of the second CT, taken bone dark at the clicks by an unclear 0.032, bone bright
+        there by a clear 0.36). When its verdict is clear (``verdict_at_clicks``) and names the other
         polarity, that polarity is used, never clear (``Appearance.as_second_opinion``): the levels stage
         registers on the image as stored converted with it, and only the contest's winner judged at the clicks
         too (``with_winner``) can make it clear. Otherwise the appearance stays as it was. Either way
@@ -171,15 +165,8 @@ class AppearanceChecks:
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         if cp is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
             return
-        contexts = {polarity: unshaded_context(ctx, WITHOUT_SHADING_MM)
-                    for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
-        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, state.xray_landmarks, p.identify)
-
-        def progress(done: int, total: int) -> None:
-            self._report("spatial", 0.9, "telling bone-dark from bone-bright at the clicks without the image's "
-                                         f"shading ({done + 1} of {total})")
-
-        unshaded = polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
+        unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
+                                              state.xray_landmarks, "at the clicks without the image's shading")
         a.scores["at_clicks_without_shading"] = second = unshaded.as_dict()
         again = self._polarity_again(state, unshaded.scores, REFINED_AT_CLICKS_WITHOUT_SHADING, unshaded.fits)
         if not again.clear or again.polarity == a.polarity:
@@ -189,6 +176,21 @@ class AppearanceChecks:
         again.scores["at_clicks_without_shading"] = second
         self._database_verdicts(state, again, gc_by_storage)
         self._use_appearance(state, again, gc_by_storage)
+
+    def _leaders_judged_again(self, state: RegistrationState, change, clicks: Landmarks2D, where: str
+                              ) -> ClickPolarity:
+        """The leading labellings of ``clicks`` registered under both polarities exactly as by ``polarity_at_clicks``,
+        on the contexts the first check used (``_polarity_contexts``, its bone-dark storage) each passed through
+        ``change(ctx) -> FitContext`` (the image mirrored, or compared without its shading); ``where`` words the
+        progress."""
+        cp, p = state.click_polarity, state.parameters
+        contexts = {polarity: change(ctx) for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
+        plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
+
+        def progress(done: int, total: int) -> None:
+            self._report("spatial", 0.9, f"telling bone-dark from bone-bright {where} ({done + 1} of {total})")
+
+        return polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
 
     def _polarity_on_mirror_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> None:
         """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did

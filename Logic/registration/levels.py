@@ -168,6 +168,11 @@ def _contest(ctx: FitContext, fits: list[LabellingFit], first: list[int], keep: 
             register(j)
 
 
+def _leader(fits: list[LabellingFit]) -> LabellingFit:
+    """The best registered labelling (lowest score)."""
+    return min((f for f in fits if f.refined), key=lambda f: f.score)
+
+
 def _rival_score(fits: list[LabellingFit], keep: int | None) -> float:
     """The score of the reference's best rival among the labellings registered in full (inf: none yet). The
     reference is the surgeon's names (index ``keep``), else the best; ``decide`` compares it with this rival, so a
@@ -211,7 +216,7 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     pose_a, pose_b = a.pose.copy(), b.pose.copy()
     refit_from(ctx, a, pose_b)
     refit_from(ctx, b, pose_a)
-    return min((f for f in fits if f.refined), key=lambda f: f.score) is a
+    return _leader(fits) is a
 
 
 def _restart_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
@@ -227,7 +232,7 @@ def _restart_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     leader = ranked[0]
     for f in ranked[:2]:
         restart(ctx, f)
-    return min((f for f in fits if f.refined), key=lambda f: f.score) is leader
+    return _leader(fits) is leader
 
 
 @dataclass
@@ -282,7 +287,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
                 fits[i] = done.copy()
     keep, stop = plan.given_index, p.stop_hopeless
     _contest(ctx, fits, plan.first, keep, stop)
-    best = min((f for f in fits if f.refined), key=lambda f: f.score)
+    best = _leader(fits)
     if plan.given_index is None and not _explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
@@ -291,7 +296,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
         _settle(ctx, fits, keep)
-    best = min((f for f in fits if f.refined), key=lambda f: f.score)
+    best = _leader(fits)
     measure_agreement(ctx, [best])
     if p.restart_poor_leaders and not _explains_the_image(best, p.rule, judged=True):
         stable = _restart_leaders(ctx, fits) and stable

@@ -317,8 +317,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
     lines += ["", "Levels not clicked: pose-PDE, found vs true pose (detector mm), modes unnamed + named.", "",
               "| variant | levels | median | 95th pct | max | within 5 mm |", "|---|---|---|---|---|---|"]
     for v in variants + ["**all**"]:
-        vals = np.concatenate([r["unfitted_pde_mm"] for r in sel if (r["variant"] == v or v == "**all**")
-                               and r["mode"] in ("unnamed", "named") and r.get("unfitted_pde_mm")] or [[]])
+        vals = _unfitted([r for r in sel if r["variant"] == v or v == "**all**"])
         if len(vals):
             lines.append(f"| {v} | {len(vals)} | {np.median(vals):.2f} | {_pct(vals, 95)} | {vals.max():.2f} | "
                          f"{np.mean(vals < 5) * 100:.0f} % |")
@@ -330,6 +329,12 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                   f"built a database left out): median {np.median(secs):.1f} s, max {max(secs):.1f} s over "
                   f"{len(secs)} runs, on a machine shared with other work."]
     return "\n".join(lines) + "\n"
+
+
+def _unfitted(runs: list[dict]) -> np.ndarray:
+    """Levels not clicked, pose-PDE found vs true pose (detector mm), of the runs with clicks (unnamed, named)."""
+    return np.concatenate([r["unfitted_pde_mm"] for r in runs if r["mode"] in ("unnamed", "named")
+                           and r.get("unfitted_pde_mm")] or [[]])
 
 
 def _targets(sel: list[dict]) -> list[str]:
@@ -344,8 +349,7 @@ def _targets(sel: list[dict]) -> list[str]:
     pol = [r for r in sel if r.get("polarity_right") is not None]
 
     def levels(keep) -> str:
-        vals = np.concatenate([r["unfitted_pde_mm"] for r in shown if r["mode"] in ("unnamed", "named")
-                               and r.get("unfitted_pde_mm") and keep(r["variant"])] or [[]])
+        vals = _unfitted([r for r in shown if keep(r["variant"])])
         return f"{np.median(vals):.2f} / {_pct(vals, 95)} mm ({len(vals)})" if len(vals) else "-"
     return ["", "The issue's targets on these runs (mirrored displays left out of all but the first two):", "",
             f"- CONFIDENT (no clicks: proposed) and wrong: {wrong} of {len(sel)} runs; names one level off "

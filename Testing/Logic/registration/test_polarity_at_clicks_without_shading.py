@@ -2,47 +2,16 @@
 tune cases of the appearance benchmark (the second CT): a clear verdict without the image's shading that names the
 other polarity is used, never clear; none is asked when the clicks' verdict is clear."""
 
-import sys
-from pathlib import Path
-
-import numpy as np
 import pytest
+from second_ct_cases import second_ct_registrar
 
 from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WITHOUT_SHADING
-from carmreg.logic.io.landmarks import Landmarks2D
-from carmreg.logic.io.xray import load_xray
-from carmreg.logic.registration.pipeline import CarmRegLogic
-from carmreg.logic.registration.state import RegistrationParameters
 
 
 @pytest.fixture(scope="module")
 def tune_case(tmp_path_factory):
-    """``registered(case, variant)``: (logic, the state after the spatial stage) of that tune case and variant with
-    its unnamed clicks (a cache of their own); skipped without ../shared (the second CT)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
-    import appearance as app
-    import bench_appearance as bench
-
-    maker = bench.CaseMaker(second_ct=True)
-    if "abdomen" not in maker.cts:
-        pytest.skip("the second CT (../shared) is not here")
-    (ct, _, centroids), _, _ = maker.cts["abdomen"]
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "clicks-shading-cache"))
-
-    def registered(case: int, variant_name: str):
-        variant = app.VARIANTS[variant_name]
-        record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case,
-                                     tmp_path_factory.mktemp(variant_name))
-        detector = app.DETECTORS[variant.detector]
-        xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-        uv_px = np.asarray(record["truth"]["clicks_uv_px"], float)
-        logic = CarmRegLogic()
-        state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv_px), uv_px), params)
-        for stage in ("database", "spatial"):
-            logic.run_stage(state, stage)
-        return logic, state, record["truth"]
-
-    return registered
+    """``registered(case, variant)``: (logic, the state after the spatial stage, truth) with its unnamed clicks."""
+    return second_ct_registrar(tmp_path_factory, "clicks-shading-cache", with_clicks=True)
 
 
 @pytest.mark.slow

@@ -2,46 +2,16 @@
 of the appearance benchmark (the second CT): where it disagrees with the first verdict it is used, never clear; where it
 agrees, nothing changes."""
 
-import sys
-from pathlib import Path
-
-import numpy as np
 import pytest
+from second_ct_cases import second_ct_registrar
 
 from carmreg.logic.image.appearance import CLEAR_REFINED_GC, REFINED_WITHOUT_SHADING, WITHOUT_SHADING_MM
-from carmreg.logic.io.landmarks import Landmarks2D
-from carmreg.logic.io.xray import load_xray
-from carmreg.logic.registration.pipeline import CarmRegLogic
-from carmreg.logic.registration.state import RegistrationParameters
 
 
 @pytest.fixture(scope="module")
 def tune_case(tmp_path_factory):
-    """``registered(case, variant)``: (logic, the state after the spatial stage) of that tune case and variant
-    without clicks (a cache of their own); skipped without ../shared (the second CT)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
-    import appearance as app
-    import bench_appearance as bench
-
-    maker = bench.CaseMaker(second_ct=True)
-    if "abdomen" not in maker.cts:
-        pytest.skip("the second CT (../shared) is not here")
-    (ct, _, centroids), _, _ = maker.cts["abdomen"]
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "shading-cache"))
-
-    def registered(case: int, variant_name: str):
-        variant = app.VARIANTS[variant_name]
-        record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case,
-                                     tmp_path_factory.mktemp(variant_name))
-        detector = app.DETECTORS[variant.detector]
-        xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-        logic = CarmRegLogic()
-        state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))), params)
-        for stage in ("database", "spatial"):
-            logic.run_stage(state, stage)
-        return logic, state
-
-    return registered
+    """``registered(case, variant)``: (logic, the state after the spatial stage, truth) without clicks."""
+    return second_ct_registrar(tmp_path_factory, "shading-cache", with_clicks=False)
 
 
 @pytest.mark.slow
@@ -49,7 +19,7 @@ def test_a_wrong_unclear_verdict_is_put_right_by_the_image_without_its_shading_b
     """Case 32 (a view tilted 9.3 and 7.8 degrees out of the image plane), its intensifier image, bone dark, log
     storage, 16-bit PNG. Stop 29: the first verdict bone bright, 0.413 against 0.355; the second opinion bone dark,
     0.763 against 0.314. Its polarity is used, not clear: no level answer can be proposed on it."""
-    logic, state = tune_case(32, "ii-dark-log-png")
+    logic, state, _ = tune_case(32, "ii-dark-log-png")
     a = state.appearance
     first, second = a.scores["without_clicks"]["scores"], a.scores["without_clicks_without_shading"]["scores"]
     assert first["bone-bright"] > first["bone-dark"] > first["bone-bright"] - CLEAR_REFINED_GC  # wrong, unclear
@@ -73,7 +43,7 @@ def test_a_wrong_unclear_verdict_is_put_right_by_the_image_without_its_shading_b
 def test_a_second_opinion_that_agrees_changes_nothing(tune_case):
     """Case 26's large patient, stored bone bright (stop 29: the first verdict bone dark, 0.572 against 0.362,
     unclear; the second opinion bone dark too, 0.375 against 0.293): recorded, the appearance as it was."""
-    _, state = tune_case(26, "fp-bright-large-tiff")
+    _, state, _ = tune_case(26, "fp-bright-large-tiff")
     a = state.appearance
     second = a.scores["without_clicks_without_shading"]["scores"]
     assert second["bone-dark"] > second["bone-bright"]

@@ -1,0 +1,44 @@
+"""Tune cases of the appearance benchmark on the second CT, registered up to the spatial stage: shared by the tests
+of the polarity's second opinions (``test_polarity_without_shading``, ``test_polarity_at_clicks_without_shading``).
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from carmreg.logic.io.landmarks import Landmarks2D
+from carmreg.logic.io.xray import load_xray
+from carmreg.logic.registration.pipeline import CarmRegLogic
+from carmreg.logic.registration.state import RegistrationParameters
+
+
+def second_ct_registrar(tmp_path_factory, cache_name: str, with_clicks: bool):
+    """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that tune case
+    and variant, with its unnamed clicks or none (a cache named ``cache_name`` of their own); skips the test
+    without ../shared (the second CT)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
+    import appearance as app
+    import bench_appearance as bench
+
+    maker = bench.CaseMaker(second_ct=True)
+    if "abdomen" not in maker.cts:
+        pytest.skip("the second CT (../shared) is not here")
+    (ct, _, centroids), _, _ = maker.cts["abdomen"]
+    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / cache_name))
+
+    def registered(case: int, variant_name: str):
+        variant = app.VARIANTS[variant_name]
+        record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case,
+                                     tmp_path_factory.mktemp(variant_name))
+        detector = app.DETECTORS[variant.detector]
+        xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
+        uv_px = np.asarray(record["truth"]["clicks_uv_px"] if with_clicks else np.zeros((0, 2)), float)
+        logic = CarmRegLogic()
+        state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv_px), uv_px), params)
+        for stage in ("database", "spatial"):
+            logic.run_stage(state, stage)
+        return logic, state, record["truth"]
+
+    return registered
