@@ -5,10 +5,12 @@ import numpy as np
 import pytest
 
 from carmreg.logic.image.appearance import FITTED_MIN_GC, REFINED_AT_CLICKS, decide_polarity, verdict_at_clicks
+from carmreg.logic.registration import click_polarity
 from carmreg.logic.registration.click_polarity import CLEAR_WITH_WINNER_GC, _evidence, confirms
 from carmreg.logic.registration.image_refine import RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
+from carmreg.logic.registration.levels import ContestPlan
 
 
 def _fit(labels: list, gc: float, mpde_mm: float) -> LabellingFit:
@@ -91,3 +93,53 @@ def test_the_levels_winner_confirms_a_polarity_only_by_the_images_own_clear_verd
     assert not confirms(evidence(0.45, 0.45 - CLEAR_WITH_WINNER_GC + 0.02), "bone-dark")  # clear for leaders only
     assert confirms(evidence(0.45, 0.45 - CLEAR_WITH_WINNER_GC - 0.02), "bone-dark")
     assert not confirms(evidence(0.79, 0.07, dark_mpde=6.0, bright_mpde=6.0), "bone-dark")  # clicks not fitted
+
+
+def _staged_plan(first: list) -> ContestPlan:
+    """An unnamed plan over T1-T12 (three clicks: shift k labels T(k+1)-T(k+3)), ``first`` the most plausible."""
+    fits = [LabellingFit([f"T{k + 1}", f"T{k + 2}", f"T{k + 3}"], k, np.zeros((3, 3)), np.zeros((3, 2)))
+            for k in range(10)]
+    return ContestPlan("unnamed", fits, first, None, [0, 1, 2], np.arange(3))
+
+
+def _staged_polarity_at_clicks(monkeypatch, staged: dict, first: list):
+    """``polarity_at_clicks`` with each registration staged: ``staged[polarity][shift] = (GC, mPDE mm)``; returns
+    the evidence and the shifts registered, in order."""
+    registered = []
+
+    def fit_labelling(ctx, fit):
+        gc, mpde_mm = staged[ctx][fit.shift]
+        registered.append(fit.shift)
+        done = _fit(fit.labels, gc, mpde_mm)
+        done.shift = fit.shift
+        return done
+
+    monkeypatch.setattr(click_polarity, "fit_labelling", fit_labelling)
+    monkeypatch.setattr(click_polarity, "landmark_fit", lambda ctx, fit: None)
+    contexts = {polarity: polarity for polarity in staged}  # each context stands for its polarity's image
+    evidence = click_polarity.polarity_at_clicks(contexts, _staged_plan(first), "log-display", ConfidenceRule())
+    return evidence, registered
+
+
+def test_a_leader_that_leads_without_keeping_the_clicks_has_its_neighbours_judged(monkeypatch):
+    """Report case 91 of the appearance benchmark, a mirrored display, unnamed clicks on T7-T9, judged on the image
+    mirrored back: the three most plausible labellings (T5-T7, T4-T6, T8-T10) left the verdict unclear, bone dark
+    leading at T8-T10 (GC 0.687) with the clicks 4.25 mm off. Its neighbours are judged too: T7-T9 reaches 0.907
+    with the clicks at 1.44 mm, and the verdict (and with it the mirror) is clear."""
+    staged = {"bone-dark": {4: (0.307, 2.22), 3: (0.353, 5.16), 7: (0.687, 4.25), 6: (0.907, 1.44), 8: (0.353, 4.99)},
+              "bone-bright": {4: (0.045, 3.63), 3: (0.019, 3.12), 7: (-0.016, 4.27), 6: (0.095, 3.57),
+                              8: (-0.129, 2.91)}}
+    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 7, 5, 2])
+    assert evidence.labels[3:] == [["T7", "T8", "T9"], ["T9", "T10", "T11"]]
+    assert sorted(set(registered)) == [3, 4, 6, 7, 8]  # the fourth most plausible (shift 5) is not judged
+    assert verdict_at_clicks(evidence.scores, evidence.fits) == ("bone-dark", pytest.approx(0.907 - 0.095), True)
+
+
+def test_a_leader_that_keeps_the_clicks_has_no_neighbours_judged(monkeypatch):
+    """Unclear only by a narrow lead, with the leader's clicks fitted: no neighbour is judged (its own registration
+    is the evidence), and the verdict stays unclear after the most plausible labellings."""
+    staged = {"bone-dark": {4: (0.30, 1.5), 3: (0.20, 2.0), 7: (0.25, 2.0)},
+              "bone-bright": {4: (0.28, 1.6), 3: (0.10, 2.0), 7: (0.05, 2.0)}}
+    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 7, 5])
+    assert sorted(set(registered)) == [3, 4, 7] and len(evidence.labels) == 3
+    assert not verdict_at_clicks(evidence.scores, evidence.fits)[2]
