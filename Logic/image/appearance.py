@@ -112,7 +112,8 @@ leading polarity then agrees with the image by ``REFUSE_ORIENTATION_AT_CLICKS_GC
 under that polarity, the display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the
 image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes but the record.
 
-A polarity still unclear without clicks, on an image taken as stored (the user did not set it), gets a second
+A polarity still unclear without clicks, or clear by less than ``CHECKED_REFINED_GC`` (stop 32; the image's verdict,
+the file not stating a polarity), on an image taken as stored (the user did not set it), gets a second
 opinion (stop 29, ``REFINED_WITHOUT_SHADING``, ``appearance_checks._polarity_without_shading``): the same
 search with the X-ray, the database and every DRR compared without their shading above ``WITHOUT_SHADING_MM``
 (``image.shading``). The first verdict's misses were failures of its search, not of the image (stop 28,
@@ -156,6 +157,8 @@ REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's sp
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
 REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # ... on the mirrored display
 REFINED_ON_MIRROR_WITHOUT_CLICKS = "refined, on the image mirrored left-right"  # no clicks, on the mirrored display
+CHECKED_REFINED_GC = 0.35   # no clicks: a clear verdict leading by less than this gets the second opinion too (the
+#                             tune half's wrong no-click verdicts led by up to 0.332)
 WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed above this scale (detector mm)
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
 REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"

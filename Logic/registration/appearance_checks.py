@@ -28,6 +28,7 @@ import dataclasses
 import numpy as np
 
 from carmreg.logic.image.appearance import (
+    CHECKED_REFINED_GC,
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_CLICKS_WITHOUT_SHADING,
@@ -36,6 +37,7 @@ from carmreg.logic.image.appearance import (
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
+    REFUSE_ORIENTATION_GC,
     WITHOUT_SHADING_MM,
     better_storage,
     database_gc,
@@ -218,9 +220,10 @@ class AppearanceChecks:
         self._use_appearance(state, again, gc_by_storage)
 
     def _polarity_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:
-        """Without clicks, a polarity still unclear on an image taken as stored (the user did not set it): the
-        second opinion. Each polarity judged again exactly as by ``polarity_from_image``, but the X-ray, the database
-        and every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
+        """Without clicks, a polarity still unclear, or the image's clear verdict by less than
+        ``CHECKED_REFINED_GC`` (the file not stating a polarity), on an image taken as stored (the user did not set
+        it): the second opinion. Each polarity judged again exactly as by ``polarity_from_image``, but the X-ray, the
+        database and every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
         (``image.shading``): on a large patient the shading outweighs the faint bone, and on a tilted view the
         plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When it leads with
         the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``: no level answer is
@@ -228,7 +231,8 @@ class AppearanceChecks:
         (``_levels``); otherwise the appearance stays as it was. Either way
         ``scores["without_clicks_without_shading"]`` records it."""
         a, p = state.appearance, state.parameters
-        if state.image_polarity is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
+        settled = a.clear and (a.clarity_gc >= CHECKED_REFINED_GC or state.xray.polarity_stated)
+        if state.image_polarity is None or settled or p.polarity in POLARITIES or a.orientation != "as-stored":
             return
         unshaded = self.polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
         a.scores["without_clicks_without_shading"] = unshaded.as_dict()
@@ -280,8 +284,9 @@ class AppearanceChecks:
 
     def with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
         """The levels stage's ``judge_appearance``: whether the appearance is trusted once the contest's winner is
-        judged at the clicks too. Only for an image taken as stored (a refused orientation stays refused) whose
-        judged labellings did not include the winner: it is registered under both polarities as the leaders were
+        judged at the clicks too. Only for an image taken as stored, or refused by the orientation check at the
+        clicks on the stored image's leaders alone (``_refused_at_clicks``; any other refusal stays), whose judged
+        labellings did not include the winner: it is registered under both polarities as the leaders were
         (``click_polarity.judged_also``). When the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC``
         (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict stays one), that verdict is
         taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
@@ -289,7 +294,9 @@ class AppearanceChecks:
         Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
-        if cp is None or a.orientation != "as-stored" or list(winner.labels) in [list(lb) for lb in cp.labels]:
+        if cp is None or list(winner.labels) in [list(lb) for lb in cp.labels]:
+            return a.trusted
+        if a.orientation != "as-stored" and not self._refused_at_clicks(a):
             return a.trusted
         contexts = self._polarity_contexts(state, cp.dark_storage)
         planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
@@ -311,6 +318,19 @@ class AppearanceChecks:
             state.appearance, state.click_polarity, state.warnings[:] = kept
             raise
         return a.trusted
+
+    @staticmethod
+    def _refused_at_clicks(a) -> bool:
+        """Whether the appearance ``a`` refuses the display only on the orientation check at the clicks
+        (``set_orientation_at_clicks``) of the stored image's polarity verdict: not on the database's scores, the
+        mirror's polarity verdict (``_polarity_on_mirror``) or without clicks. That check judged the leading
+        labellings only, which may all be wrong (seen: report case 99's intensifier images, T9-T11 clicked, judged
+        on T6-T8 and T8-T10 at GC 0.32, the mirror 0.43 ahead by 0.11; the contest's winner T9-T11 then reached
+        0.82 as stored); the levels' winner judged too (``with_winner``) may overrule it."""
+        database = a.orientation_scores
+        database_lead = max(v for k, v in database.items() if k != "as-stored") - database["as-stored"]
+        return (a.orientation_at_clicks is not None and a.orientation != "as-stored"
+                and database_lead < REFUSE_ORIENTATION_GC and REFINED_ON_MIRROR not in a.decided_by)
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
         """The leading labellings registered under both polarities (``click_polarity``); None without enough

@@ -18,12 +18,14 @@ from carmreg.logic.image.appearance import (
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
+    REFUSE_ORIENTATION_GC,
     decide_polarity,
     orient_uv,
     verdict_at_clicks,
 )
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
+from carmreg.logic.registration.appearance_checks import AppearanceChecks
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
     orientation_at_clicks,
@@ -282,3 +284,25 @@ def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again
 
     logic.run_stage(state, "database")  # a re-run of the spatial stage starts afresh
     assert state.turned_fits == {}
+
+
+def test_only_a_refusal_at_the_clicks_on_the_stored_images_verdict_may_be_judged_again_with_the_levels_winner():
+    """``AppearanceChecks._refused_at_clicks``: report case 99's intensifier image (correctly displayed, T9-T11
+    clicked) was refused at the clicks on its leaders T6-T8 and T8-T10 (as stored 0.318, mirrored 0.425); the
+    levels' winner may overrule that refusal, never the database's nor the mirror's polarity verdict."""
+    fitted = {"as-stored": True, MIRROR: True, "flipped-up-down": True}
+    at_clicks = {"scores": {"as-stored": 0.318, MIRROR: 0.425, "flipped-up-down": 0.379}, "fitted": fitted}
+    a = _appearance()
+    a.set_orientation({"as-stored": 0.409, MIRROR: 0.444, "flipped-up-down": 0.465})  # the database: unclear
+    assert not AppearanceChecks._refused_at_clicks(a)  # taken as stored: nothing refused
+    a.set_orientation_at_clicks(at_clicks)
+    assert a.orientation == MIRROR and AppearanceChecks._refused_at_clicks(a)
+    by_database = _appearance()
+    by_database.set_orientation({"as-stored": 0.30, MIRROR: 0.30 + REFUSE_ORIENTATION_GC})
+    by_database.set_orientation_at_clicks(at_clicks)
+    assert by_database.orientation == MIRROR and not AppearanceChecks._refused_at_clicks(by_database)
+    on_mirror = _appearance()
+    on_mirror.set_orientation({"as-stored": 0.409, MIRROR: 0.444})
+    on_mirror.set_orientation_at_clicks(at_clicks)
+    on_mirror.decided_by = f"image ({REFINED_ON_MIRROR})"
+    assert not AppearanceChecks._refused_at_clicks(on_mirror)

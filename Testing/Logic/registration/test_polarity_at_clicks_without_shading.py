@@ -3,7 +3,7 @@ tune cases of the appearance benchmark (the second CT): a clear verdict without 
 other polarity is used, never clear; none is asked when the clicks' verdict is clear."""
 
 import pytest
-from second_ct_cases import second_ct_registrar
+from appearance_cases import appearance_case_registrar
 
 from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WITHOUT_SHADING
 
@@ -11,7 +11,7 @@ from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WI
 @pytest.fixture(scope="module")
 def tune_case(tmp_path_factory):
     """``registered(case, variant)``: (logic, the state after the spatial stage, truth) with its unnamed clicks."""
-    return second_ct_registrar(tmp_path_factory, "clicks-shading-cache", with_clicks=True)
+    return appearance_case_registrar(tmp_path_factory, "clicks-shading-cache", with_clicks=True)
 
 
 @pytest.mark.slow

@@ -1,5 +1,6 @@
-"""Tune cases of the appearance benchmark on the second CT, registered up to the spatial stage: shared by the tests
-of the polarity's second opinions (``test_polarity_without_shading``, ``test_polarity_at_clicks_without_shading``).
+"""Cases of the appearance benchmark registered up to the spatial stage, each on its own CT: shared by the tests of
+the polarity's second opinions (``test_polarity_without_shading``, ``test_polarity_at_clicks_without_shading``) and of
+the levels' winner judging the appearance (``test_appearance_with_winner``).
 """
 
 import sys
@@ -14,21 +15,22 @@ from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
 
 
-def second_ct_registrar(tmp_path_factory, cache_name: str, with_clicks: bool):
-    """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that tune case
-    and variant, with its unnamed clicks or none (a cache named ``cache_name`` of their own); skips the test
-    without ../shared (the second CT)."""
+def appearance_case_registrar(tmp_path_factory, cache_name: str, with_clicks: bool):
+    """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that case and
+    variant of the appearance benchmark, on the case's CT (``CaseMaker.ct_name``: every third case the second CT),
+    with its unnamed clicks or none (a cache named ``cache_name`` of their own); a case of the second CT skips the
+    test without ../shared."""
     sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=True)
-    if "abdomen" not in maker.cts:
-        pytest.skip("the second CT (../shared) is not here")
-    (ct, _, centroids), _, _ = maker.cts["abdomen"]
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / cache_name))
 
     def registered(case: int, variant_name: str):
+        if case % 3 == 2 and "abdomen" not in maker.cts:
+            pytest.skip("the second CT (../shared) is not here")
+        (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
         variant = app.VARIANTS[variant_name]
         record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case,
                                      tmp_path_factory.mktemp(variant_name))
