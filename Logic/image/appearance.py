@@ -166,6 +166,8 @@ CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by t
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
 REFUSE_ORIENTATION_AT_CLICKS_GC = 0.10  # ... and another orientation's lead that refuses the image
+CLOSE_ORIENTATION_AT_CLICKS_GC = 0.15   # ... a lead either way under this is judged with more labellings (tune: a
+#                                         mirrored display trailed its mirror by 0.108, correct ones led by 0.052)
 ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
                 "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
                 "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}

@@ -50,6 +50,7 @@ from carmreg.logic.image.shading import shading_remover
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
+    close_call,
     orientation_at_clicks,
     oriented_context,
     rival_orientations,
@@ -62,6 +63,7 @@ from carmreg.logic.registration.click_polarity import (
     confirms,
     judged_also,
     polarity_at_clicks,
+    registered_as_leader,
 )
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
 from carmreg.logic.registration.image_starts import image_starts
@@ -324,9 +326,10 @@ class AppearanceChecks:
         """Whether the appearance ``a`` refuses the display only on the orientation check at the clicks
         (``set_orientation_at_clicks``) of the stored image's polarity verdict: not on the database's scores, the
         mirror's polarity verdict (``_polarity_on_mirror``) or without clicks. That check judged the leading
-        labellings only, which may all be wrong (seen: report case 99's intensifier images, T9-T11 clicked, judged
-        on T6-T8 and T8-T10 at GC 0.32, the mirror 0.43 ahead by 0.11; the contest's winner T9-T11 then reached
-        0.82 as stored); the levels' winner judged too (``with_winner``) may overrule it."""
+        labellings only (and, on a close call, their neighbours), which may all be wrong (seen: report case 99's
+        intensifier images, T9-T11 clicked, judged on T6-T8 and T8-T10 at GC 0.32, the mirror 0.43 ahead by 0.11;
+        the contest's winner T9-T11 then reached 0.82 as stored; the close call's neighbours now settle that
+        case first); the levels' winner judged too (``with_winner``) may overrule it."""
         database = a.orientation_scores
         database_lead = max(v for k, v in database.items() if k != "as-stored") - database["as-stored"]
         return (a.orientation_at_clicks is not None and a.orientation != "as-stored"
@@ -374,7 +377,9 @@ class AppearanceChecks:
 
     def _orientation_at_clicks(self, state: RegistrationState, stage: str, clear_gc: float | None = None) -> None:
         """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
-        judged where the clicks put the CT (``click_orientation``), which then decides."""
+        judged where the clicks put the CT (``click_orientation``), which then decides. A close call (the stored
+        orientation's lead either way under ``CLOSE_ORIENTATION_AT_CLICKS_GC``) is judged again with the judged
+        labellings' neighbours too (``_neighbours_as_stored``)."""
         a, cp = state.appearance, state.click_polarity
         if cp is None or not a.clear or a.polarity not in cp.registered:
             return
@@ -382,10 +387,38 @@ class AppearanceChecks:
         contexts = {o: oriented_context(base, o) for o in rival_orientations(a.orientation_scores)}
         self._report(stage, 0.95, "judging the display's orientation at the clicks")
         memo = state.turned_fits.setdefault((a.polarity, a.storage), {})  # the image the contexts show
-        evidence = orientation_at_clicks(contexts, cp.registered[a.polarity], state.xray.size_px,
-                                         state.parameters.identify.rule, names_follow_clicks=state.xray_landmarks.named,
-                                         memo=memo)
+
+        def judged_on(judged: list):
+            return orientation_at_clicks(contexts, judged, state.xray.size_px, state.parameters.identify.rule,
+                                         names_follow_clicks=state.xray_landmarks.named, memo=memo)
+
+        judged = list(cp.registered[a.polarity])
+        evidence = judged_on(judged)
+        if close_call(evidence.scores):
+            more = self._neighbours_as_stored(state, base, judged, memo)
+            evidence = judged_on(judged + more) if more else evidence
         a.set_orientation_at_clicks(evidence.as_dict(), clear_gc)
+
+    @staticmethod
+    def _neighbours_as_stored(state: RegistrationState, base: FitContext, judged: list, memo: dict) -> list:
+        """The labellings one level up and down from each judged one (the plan's, not judged yet), registered on
+        the image as stored (``base``) as the leaders were (``registered_as_leader``), each once per image
+        (``memo``). The leading labellings, ranked by click spacing, can all be wrong; on a mirrored display the
+        stored image then fits them about as well as the mirror does, and the right labelling, a level or two
+        away, shows the mirror clearly ahead (seen: report case 99's mirrored display, judged on T6-T8 and T8-T10,
+        clear as stored by 0.066; T9-T11 on the mirror reaches 0.82)."""
+        plan = plan_contest(base, state.ct_landmarks, state.xray_landmarks, state.parameters.identify)
+        done = {(tuple(f.labels), f.shift) for f in judged}
+        shifts = {f.shift for f in judged}
+        wanted = [f for f in plan.fits if (tuple(f.labels), f.shift) not in done
+                  and any(abs(f.shift - s) == 1 for s in shifts)]
+        registered = []
+        for f in wanted:
+            key = ("as-stored", tuple(f.labels), f.shift)
+            if key not in memo:
+                memo[key] = registered_as_leader(base, f)
+            registered.append(memo[key])
+        return registered
 
     def polarity_from_image(self, state: RegistrationState, gc_by_storage: dict, orientation: str = "as-stored",
                              without_shading_mm: float = 0.0) -> ImagePolarity:

@@ -19,7 +19,12 @@ turned upside down is judged with its levels the right way up)::
 
 Every orientation gets the same labellings: judged with the stored orientation's best labelling alone, a mirrored
 display was once called clearly as stored (0.487 against 0.353, with a labelling two levels off; the mirror with
-the right labelling reaches 0.68).
+the right labelling reaches 0.68). And when the judged labellings are all wrong, the verdict is a close call
+whichever way it goes (seen, stop 32: report case 99, T9-T11 clicked, judged on T6-T8 and T8-T10: its mirrored
+display clear as stored by 0.066, its correctly displayed images refused by 0.107). So a close call - the stored
+orientation and its best rival within ``CLOSE_ORIENTATION_AT_CLICKS_GC`` either way (``close_call``) - is judged
+again with the labellings one level up and down from each judged one added, registered as stored and on every
+rival (``appearance_checks._neighbours_as_stored``).
 
 A display shown as acquired matches the CT as stored; a mirrored one matches it mirrored. The rivals judged are
 the orientations the database could not rule out (within ``CLEAR_ORIENTATION_GC`` of the stored one, or ahead of
@@ -36,7 +41,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
-from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, ORIENTATIONS, orient_uv
+from carmreg.logic.image.appearance import (
+    CLEAR_ORIENTATION_GC,
+    CLOSE_ORIENTATION_AT_CLICKS_GC,
+    ORIENTATIONS,
+    orient_uv,
+)
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
@@ -115,6 +125,14 @@ def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int]
     fitted = {name: bool(name == "as-stored" or (np.isfinite(scores[name]) and m <= limit))
               for name, m in mpde.items()}
     return ClickOrientation([list(f.labels) for f in judged], scores, mpde, fitted)
+
+
+def close_call(scores: dict) -> bool:
+    """Whether the stored orientation's GC ``scores["as-stored"]`` and its best rival's (``orientation_at_clicks``;
+    nan: not fittable, left out) lie within ``CLOSE_ORIENTATION_AT_CLICKS_GC`` of each other either way: the
+    verdict, whichever it is, then rests on the labellings judged (module docstring)."""
+    rivals = [g for o, g in scores.items() if o != "as-stored" and g is not None and np.isfinite(g)]
+    return bool(rivals) and abs(scores["as-stored"] - max(rivals)) < CLOSE_ORIENTATION_AT_CLICKS_GC
 
 
 def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> Landmarks2D:

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 from carmreg.logic.image.appearance import verdict_at_clicks
 from carmreg.logic.registration.fine import FineResult
-from carmreg.logic.registration.labelling_fit import LabellingFit, fit_labelling, landmark_fit
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, landmark_fit
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
 
@@ -96,7 +96,7 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
                 if i not in landmark_fits:
                     landmark_fits[i] = landmark_fit(ctx, plan.fits[i])
-                registered[polarity].append(fit_labelling(ctx, _fresh(plan.fits[i], landmark_fits[i])))
+                registered[polarity].append(registered_as_leader(ctx, plan.fits[i], landmark_fits[i]))
         evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
         if verdict_at_clicks(evidence.scores, evidence.fits)[2]:
             return evidence
@@ -129,7 +129,7 @@ def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, 
     registered = {polarity: list(fits) for polarity, fits in evidence.registered.items()}
     fine = landmark_fit(next(iter(contexts.values())), planned)
     for polarity, ctx in contexts.items():
-        registered[polarity].append(fit_labelling(ctx, _fresh(planned, fine)))
+        registered[polarity].append(registered_as_leader(ctx, planned, fine))
     return _evidence(registered, [*evidence.labels, list(planned.labels)], evidence.dark_storage, rule)
 
 
@@ -152,7 +152,10 @@ def _evidence(registered: dict, labels: list, dark_storage: str, rule: Confidenc
     return ClickPolarity(scores, fits, {p: list(f) for p, f in registered.items()}, labels, dark_storage)
 
 
-def _fresh(plan: LabellingFit, fine: FineResult) -> LabellingFit:
-    """The planned labelling (depth search only) with its landmark fit, as a new object to register."""
-    return LabellingFit(list(plan.labels), plan.shift, plan.points_lps_mm, plan.uv_px, plan.depth, fine)
+def registered_as_leader(ctx: FitContext, planned: LabellingFit, fine: FineResult | None = None) -> LabellingFit:
+    """``planned`` (``plan_labelling`` or a ``ContestPlan``'s, depth search only) registered on ``ctx`` as the
+    leaders are (``fit_labelling`` from its landmark fit ``fine``, computed when None), as a new object."""
+    fine = landmark_fit(ctx, planned) if fine is None else fine
+    return fit_labelling(ctx, LabellingFit(list(planned.labels), planned.shift, planned.points_lps_mm,
+                                           planned.uv_px, planned.depth, fine))
 

@@ -14,6 +14,7 @@ from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_AT_CLICKS_GC,
     CLEAR_REFINED_GC,
+    CLOSE_ORIENTATION_AT_CLICKS_GC,
     ORIENTATIONS,
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
@@ -28,6 +29,7 @@ from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.appearance_checks import AppearanceChecks
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
+    close_call,
     orientation_at_clicks,
     oriented_context,
     oriented_geometry,
@@ -306,3 +308,14 @@ def test_only_a_refusal_at_the_clicks_on_the_stored_images_verdict_may_be_judged
     on_mirror.set_orientation_at_clicks(at_clicks)
     on_mirror.decided_by = f"image ({REFINED_ON_MIRROR})"
     assert not AppearanceChecks._refused_at_clicks(on_mirror)
+
+
+def test_a_close_call_is_a_lead_either_way_under_the_limit_among_fittable_rivals():
+    """``close_call``: report case 99's two displays judged on wrong leaders (clear as stored by 0.066, refused by
+    0.107) are close calls; a lead of 0.15 or more either way is not; rivals that could not fit the clicks (nan,
+    None) do not count."""
+    assert close_call({"as-stored": 0.425, MIRROR: 0.325, "turned-180": 0.359})
+    assert close_call({"as-stored": 0.318, MIRROR: 0.425, "flipped-up-down": 0.379})
+    assert not close_call({"as-stored": 0.60, MIRROR: 0.60 - CLOSE_ORIENTATION_AT_CLICKS_GC})
+    assert not close_call({"as-stored": 0.30, MIRROR: 0.30 + CLOSE_ORIENTATION_AT_CLICKS_GC + 0.001})
+    assert not close_call({"as-stored": 0.40, MIRROR: float("nan"), "turned-90": None})
