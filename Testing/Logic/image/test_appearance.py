@@ -319,12 +319,15 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
 
 def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch):
     """(logic, state) of the case stored as a bone-bright PNG with unnamed clicks, after the spatial stage, under
-    stop 13's clear orientation lead at the clicks (0.10): its two leaders are wrong labellings, along which the
-    stored orientation leads its mirror by less than that, so the appearance is not trusted and the levels stage
-    judges it again with its winner (with today's 0.05 it is trusted from the start)."""
+    stop 13's clear orientation lead at the clicks (0.10) and without stop 32's close call: its two leaders are
+    wrong labellings, along which the stored orientation leads its mirror by less than that, so the appearance is
+    not trusted and the levels stage judges it again with its winner (with today's 0.05, or with the close call's
+    neighbours judged, it is trusted from the start)."""
     import carmreg.logic.image.appearance as appearance
+    import carmreg.logic.registration.click_orientation as click_orientation
 
     monkeypatch.setattr(appearance, "CLEAR_ORIENTATION_AT_CLICKS_GC", 0.10)
+    monkeypatch.setattr(click_orientation, "CLOSE_ORIENTATION_AT_CLICKS_GC", 0.0)
     ct, _, centroids = sample_ct
     sim, geometry = case
     bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")

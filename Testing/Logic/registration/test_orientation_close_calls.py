@@ -39,9 +39,10 @@ def test_a_correct_display_refused_on_wrong_leaders_is_taken_as_stored_with_thei
 
 @pytest.mark.slow
 def test_a_mirrored_display_clear_as_stored_on_wrong_leaders_is_refused_with_their_neighbours(clicked_case):
-    """The same case's mirrored display. On the leaders alone the stored image led its mirror, 0.425 against 0.325:
-    clear as stored, and only a 0.003 margin between T6-T8 and T7-T9 kept a wrong answer from being confident
-    (stop 32, before). With the neighbours, T9-T11 on the mirror reaches about 0.82: refused, no level named."""
+    """The same case's mirrored display. On the leaders alone the stored image led every rival, 0.425 against 0.359
+    (turned 180 degrees) and 0.325 (mirrored): clear as stored, and only a 0.003 margin between T6-T8 and T7-T9 kept
+    a wrong answer from being confident (stop 32, before). With the neighbours, T9-T11 on the mirror reaches about
+    0.82: refused, no level named."""
     logic, state, truth = clicked_case(99, "ii-dark-mirrored-png")
     a = state.appearance
     assert truth["clicked"] in _judged(a)[2:]
