@@ -184,6 +184,13 @@ def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndar
     return np.stack(turned, axis=1)
 
 
+def database_orientation(scores: dict) -> str:
+    """The database's verdict on the orientation from its ``orientation_scores``: the best one when it leads the
+    stored one by ``REFUSE_ORIENTATION_GC`` (the image refused), else "as-stored" (module docstring)."""
+    best = max(scores, key=scores.get)
+    return best if scores[best] - scores["as-stored"] >= REFUSE_ORIENTATION_GC else "as-stored"
+
+
 def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -> bool:
     """Whether a level answer may be confident on this appearance: the polarity clear, and the image matching the
     CT best as stored by a clear lead (``CLEAR_ORIENTATION_GC`` on the database, ``CLEAR_ORIENTATION_AT_CLICKS_GC``
@@ -257,9 +264,8 @@ class Appearance:
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""
         self.orientation_scores = dict(scores)
-        best = max(scores, key=scores.get)
         lead = scores["as-stored"] - max((v for k, v in scores.items() if k != "as-stored"), default=-np.inf)
-        self.orientation = best if scores[best] - scores["as-stored"] >= REFUSE_ORIENTATION_GC else "as-stored"
+        self.orientation = database_orientation(scores)
         self.orientation_clear = bool(lead >= CLEAR_ORIENTATION_GC)
 
     def set_orientation_at_clicks(self, evidence: dict, clear_gc: float | None = None) -> None:

@@ -37,10 +37,10 @@ from carmreg.logic.image.appearance import (
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
-    REFUSE_ORIENTATION_GC,
     WITHOUT_SHADING_MM,
     better_storage,
     database_gc,
+    database_orientation,
     decide_polarity,
     image_polarity,
     orientation_scores,
@@ -62,6 +62,7 @@ from carmreg.logic.registration.click_polarity import (
     ClickPolarity,
     confirms,
     judged_also,
+    one_level_from,
     polarity_at_clicks,
     registered_as_leader,
 )
@@ -330,10 +331,9 @@ class AppearanceChecks:
         intensifier images, T9-T11 clicked, judged on T6-T8 and T8-T10 at GC 0.32, the mirror 0.43 ahead by 0.11;
         the contest's winner T9-T11 then reached 0.82 as stored; the close call's neighbours now settle that
         case first); the levels' winner judged too (``with_winner``) may overrule it."""
-        database = a.orientation_scores
-        database_lead = max(v for k, v in database.items() if k != "as-stored") - database["as-stored"]
         return (a.orientation_at_clicks is not None and a.orientation != "as-stored"
-                and database_lead < REFUSE_ORIENTATION_GC and REFINED_ON_MIRROR not in a.decided_by)
+                and database_orientation(a.orientation_scores) == "as-stored"
+                and REFINED_ON_MIRROR not in a.decided_by)
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
         """The leading labellings registered under both polarities (``click_polarity``); None without enough
@@ -409,11 +409,9 @@ class AppearanceChecks:
         clear as stored by 0.066; T9-T11 on the mirror reaches 0.82)."""
         plan = plan_contest(base, state.ct_landmarks, state.xray_landmarks, state.parameters.identify)
         done = {(tuple(f.labels), f.shift) for f in judged}
-        shifts = {f.shift for f in judged}
-        wanted = [f for f in plan.fits if (tuple(f.labels), f.shift) not in done
-                  and any(abs(f.shift - s) == 1 for s in shifts)]
+        near = [plan.fits[i] for i in one_level_from(plan, {f.shift for f in judged})]
         registered = []
-        for f in wanted:
+        for f in [f for f in near if (tuple(f.labels), f.shift) not in done]:
             key = ("as-stored", tuple(f.labels), f.shift)
             if key not in memo:
                 memo[key] = registered_as_leader(base, f)

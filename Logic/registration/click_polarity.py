@@ -117,7 +117,12 @@ def _neighbours_of_unfitted_leader(evidence: ClickPolarity, plan: ContestPlan, j
         return []
     done = evidence.registered[polarity]
     leader = done[max(range(len(done)), key=lambda i: done[i].similarity)]
-    return [i for i, f in enumerate(plan.fits) if abs(f.shift - leader.shift) == 1 and i not in judged]
+    return [i for i in one_level_from(plan, {leader.shift}) if i not in judged]
+
+
+def one_level_from(plan: ContestPlan, shifts: set) -> list:
+    """The plan's indices of the labellings one level up or down from any of ``shifts`` (``LabellingFit.shift``)."""
+    return [i for i, f in enumerate(plan.fits) if any(abs(f.shift - s) == 1 for s in shifts)]
 
 
 def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, rule: ConfidenceRule
