@@ -287,9 +287,10 @@ class AppearanceChecks:
 
     def with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
         """The levels stage's ``judge_appearance``: whether the appearance is trusted once the contest's winner is
-        judged at the clicks too. Only for an image taken as stored, or refused by the orientation check at the
-        clicks on the stored image's leaders alone (``_refused_at_clicks``; any other refusal stays), whose judged
-        labellings did not include the winner: it is registered under both polarities as the leaders were
+        judged at the clicks too. A trusted appearance has its orientation judged again with the winner
+        (``_orientation_with_winner``). Otherwise, only for an image taken as stored, or refused by the orientation
+        check at the clicks on the stored image's leaders alone (``_refused_at_clicks``; any other refusal stays),
+        whose judged labellings did not include the winner: it is registered under both polarities as the leaders were
         (``click_polarity.judged_also``). When the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC``
         (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict stays one), that verdict is
         taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
@@ -297,6 +298,8 @@ class AppearanceChecks:
         Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
+        if a.trusted:
+            return self._orientation_with_winner(state, winner)
         if cp is None or list(winner.labels) in [list(lb) for lb in cp.labels]:
             return a.trusted
         if a.orientation != "as-stored" and not self._refused_at_clicks(a):
@@ -321,6 +324,30 @@ class AppearanceChecks:
             state.appearance, state.click_polarity, state.warnings[:] = kept
             raise
         return a.trusted
+
+    def _orientation_with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
+        """A trusted appearance (``Appearance.trusted``) whose orientation check at the clicks did not judge the
+        contest's winner: the winner registered on the image as stored as the leaders were, and the orientation
+        judged again with it among the judged labellings, as stored and on every rival, by the same rule and leads
+        (``_orientation_at_clicks``, ``Appearance.set_orientation_at_clicks``). The leaders, ranked by click spacing,
+        can all be wrong, and a mirrored display can then lead as stored on them (seen: report case 99's, 0.425
+        against 0.359 on T6-T8 and T8-T10; T9-T11 on the mirror reaches 0.82): no confident answer names a labelling
+        whose display was not judged. It runs on a trusted appearance only, so it can take trust away, never give
+        it (the winner, chosen on the image as stored, leans toward the stored orientation: ``with_winner`` asks a
+        wider lead where it may give trust). All or nothing: a cancel on the way leaves the appearance as it was.
+        Whether the appearance is trusted after."""
+        a = state.appearance
+        judged = a.orientation_at_clicks["labels"] if a.orientation_at_clicks is not None else None
+        if judged is None or list(winner.labels) in [list(lb) for lb in judged]:
+            return a.trusted
+        kept = (copy.deepcopy(a), list(state.warnings))
+        try:
+            self._orientation_at_clicks(state, "levels", winner=winner)
+            self._appearance_warnings(state)
+        except BaseException:
+            state.appearance, state.warnings[:] = kept
+            raise
+        return state.appearance.trusted
 
     @staticmethod
     def _refused_at_clicks(a) -> bool:
@@ -375,11 +402,13 @@ class AppearanceChecks:
         dark = polarity == "bone-dark"
         return attenuation(state.xray.pixels, state.mask, dark, dark_storage if dark else "log-display")
 
-    def _orientation_at_clicks(self, state: RegistrationState, stage: str, clear_gc: float | None = None) -> None:
+    def _orientation_at_clicks(self, state: RegistrationState, stage: str, clear_gc: float | None = None,
+                               winner: LabellingFit | None = None) -> None:
         """With clicks and a clear polarity, the mirror and the orientations the database could not rule out
-        judged where the clicks put the CT (``click_orientation``), which then decides. A close call (the stored
-        orientation's lead either way under ``CLOSE_ORIENTATION_AT_CLICKS_GC``) is judged again with the judged
-        labellings' neighbours too (``_neighbours_as_stored``)."""
+        judged where the clicks put the CT (``click_orientation``), which then decides; ``winner``: the contest's
+        winner judged too (``_orientation_with_winner``). A close call (the stored orientation's lead either way
+        under ``CLOSE_ORIENTATION_AT_CLICKS_GC``) is judged again with the judged labellings' neighbours too
+        (``_neighbours_as_stored``)."""
         a, cp = state.appearance, state.click_polarity
         if cp is None or not a.clear or a.polarity not in cp.registered:
             return
@@ -393,6 +422,9 @@ class AppearanceChecks:
                                          names_follow_clicks=state.xray_landmarks.named, memo=memo)
 
         judged = list(cp.registered[a.polarity])
+        if winner is not None:
+            planned = plan_labelling(base, winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
+            judged.append(self._registered_as_stored(base, planned, memo))
         evidence = judged_on(judged)
         if close_call(evidence.scores):
             more = self._neighbours_as_stored(state, base, judged, memo)
@@ -410,13 +442,17 @@ class AppearanceChecks:
         plan = plan_contest(base, state.ct_landmarks, state.xray_landmarks, state.parameters.identify)
         done = {(tuple(f.labels), f.shift) for f in judged}
         near = [plan.fits[i] for i in one_level_from(plan, {f.shift for f in judged})]
-        registered = []
-        for f in [f for f in near if (tuple(f.labels), f.shift) not in done]:
-            key = ("as-stored", tuple(f.labels), f.shift)
-            if key not in memo:
-                memo[key] = registered_as_leader(base, f)
-            registered.append(memo[key])
-        return registered
+        return [AppearanceChecks._registered_as_stored(base, f, memo)
+                for f in near if (tuple(f.labels), f.shift) not in done]
+
+    @staticmethod
+    def _registered_as_stored(base: FitContext, planned: LabellingFit, memo: dict) -> LabellingFit:
+        """``planned`` (depth search only) registered on the image as stored (``base``) as the leaders were
+        (``registered_as_leader``), once per image (``memo``, keyed by its labels and shift)."""
+        key = ("as-stored", tuple(planned.labels), planned.shift)
+        if key not in memo:
+            memo[key] = registered_as_leader(base, planned)
+        return memo[key]
 
     def polarity_from_image(self, state: RegistrationState, gc_by_storage: dict, orientation: str = "as-stored",
                              without_shading_mm: float = 0.0) -> ImagePolarity:

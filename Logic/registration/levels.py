@@ -30,10 +30,11 @@ a right labelling whose refinement stopped in a local optimum would otherwise be
 changes hands there is not stable either.
 
 The X-ray's appearance (polarity, orientation) was judged before the contest, at the poses of its most plausible
-labellings (``click_polarity``, ``click_orientation``). When that left it unclear, the contest's winner was not
-among them, and the appearance alone keeps the verdict from standing, the pipeline judges it again with the
-winner too (``judge_appearance``; seen: the chest case above, right but ambiguous in 8 of 8 runs because its
-polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine).
+labellings (``click_polarity``, ``click_orientation``). Whenever the verdict would stand on the appearance and the
+contest's winner was not among them, the pipeline judges the appearance again with the winner too
+(``judge_appearance``): when it was unclear (seen: the chest case above, right but ambiguous in 8 of 8 runs because
+its polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine), and when it
+was trusted, so that no confident answer names a labelling whose display orientation was never judged.
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
 challenges the best with its pose moved one level up and down; the answer is only ever **proposed**.
@@ -275,9 +276,9 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
     ``registered``: labellings already registered on this very X-ray image (the polarity check at the clicks'
     poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks.
-    ``judge_appearance(winner) -> bool``: when the appearance is not clear and it alone keeps the verdict from
-    standing, called with the contest's winner; whether the appearance is clear once that labelling is judged too
-    (the pipeline's)."""
+    ``judge_appearance(winner) -> bool``: called with the contest's winner whenever the verdict, were the
+    appearance clear, would not be ambiguous; whether the appearance is trusted once that labelling is judged too
+    (the pipeline's, ``AppearanceChecks.with_winner``)."""
     p = params or IdentifyParameters()
     plan = plan_contest(ctx, ct, clicks, p)
     fits = plan.fits
@@ -304,9 +305,9 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
         _settle(ctx, fits, keep)
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)
-    if not appearance_clear and judge_appearance is not None:
+    if judge_appearance is not None:
         unblocked = decide(fits, given, p.rule, stable=stable)  # the verdict were the appearance clear
-        if unblocked.status != "ambiguous":  # the appearance alone keeps it from standing
+        if unblocked.status != "ambiguous":  # it stands, or the appearance alone keeps it from standing
             appearance_clear = judge_appearance(unblocked.winner)
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner

@@ -258,10 +258,11 @@ def test_a_restart_that_hands_the_lead_to_the_other_leader_is_not_stable(monkeyp
     assert not ident.checks["stability"]["ok"] and ident.checks["image_agreement"]["ok"]
 
 
-def test_an_unclear_appearance_is_judged_again_with_the_contests_winner_which_alone_can_make_it_confident(
+def test_the_appearance_is_judged_again_with_the_contests_winner_whose_verdict_decides_the_appearance_check(
         monkeypatch):
-    """The appearance (polarity, orientation) judged on the most plausible labellings only was unclear; the winner
-    is handed to ``judge_appearance`` before the verdict, and what it says decides the appearance check."""
+    """The appearance (polarity, orientation) was judged on the most plausible labellings only, unclear or clear;
+    the winner is handed to ``judge_appearance`` before the verdict, and what it says decides the appearance
+    check - unless the verdict is ambiguous anyway."""
     asked = []
 
     def judge(winner):
@@ -274,11 +275,13 @@ def test_an_unclear_appearance_is_judged_again_with_the_contests_winner_which_al
                                    appearance_clear=False, judge_appearance=judge)
         assert asked == [["X9"]] and ident.winner.labels == ["X9"] and ident.status == status
         assert ident.checks["appearance"]["ok"] is verdict
-    asked.clear()  # a clear appearance is not judged again
-    _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
-                               judge_appearance=judge)
-    assert asked == [] and ident.status == "confident"
-    verdict = True  # nor is it when another check fails anyway (the winner's GC 0.35 under the 0.40 floor)
+    for verdict, status in ((True, "confident"), (False, "ambiguous")):  # a clear one too (stop 33): the
+        asked.clear()  # winner may show the display mirrored where the judged labellings did not
+        _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
+                                   judge_appearance=judge)
+        assert asked == [["X9"]] and ident.status == status and ident.checks["appearance"]["ok"] is verdict
+    asked.clear()
+    verdict = True  # not judged when another check fails anyway (the winner's GC 0.35 under the 0.40 floor)
     _, ident = _staged_contest(monkeypatch, truth=9, gc_of_the_others=0.30, first=[1, 2, 3, 4, 5],
                                appearance_clear=False, judge_appearance=judge, truth_gc=0.35)
     assert asked == [] and ident.status == "ambiguous" and ident.winner.labels == ["X9"]
