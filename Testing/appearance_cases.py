@@ -1,6 +1,6 @@
 """Cases of the appearance benchmark registered up to the spatial stage, each on its own CT: shared by the tests of
 the polarity's second opinions (``test_polarity_without_shading``, ``test_polarity_at_clicks_without_shading``) and of
-a close call on the orientation at the clicks (``test_orientation_close_calls``).
+the orientation at the clicks judged again on more labellings (``test_orientation_judged_again``).
 """
 
 import sys
