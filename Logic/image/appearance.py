@@ -51,8 +51,14 @@ clear, so no level answer is confident, and the note says to check the image and
 Storage
 -------
 Bone-dark images are converted to attenuation either as linear intensity, ``L = -log(S / S_ref)``, or as an
-already log-like display, ``L = (S_ref - S) / range``; the conversion whose best DRR agrees more (max GC over
-the database) is used and both scores are recorded. Bone-bright images are attenuation-like by construction and
+already log-like display, ``L = (S_ref - S) / range``. A file that states it stores the intensity itself (DICOM
+PixelIntensityRelationship LIN, sign +1: ``XrayImage.stated_storage``) is converted as linear intensity; otherwise
+the conversion whose best DRR agrees more (max GC over the database) is used (``dark_storage``). Both scores are
+recorded, and ``Appearance.storage_from`` says which rule decided. The file's word wins because the image's is
+weak: on a lumbar flat-panel image stored LIN (report case 131 of the appearance benchmark, second CT) the log
+display agreed more, 0.52 against 0.38, and the refined agreement then reached only 0.67 (0.86 on the same
+scene stored log), the contest's winner a wrong labelling kept from confidence only by the orientation check.
+Bone-bright images are attenuation-like by construction and
 are used linearly, ``L = (S - S_lo) / range``.
 
 Orientation
@@ -199,6 +205,11 @@ def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -
     return bool(clear and orientation == "as-stored" and orientation_clear)
 
 
+STORAGE_FROM_IMAGE = "image (the conversion whose best DRR agrees more)"
+STORAGE_FROM_FILE = "file (DICOM PixelIntensityRelationship LIN, sign +1: linear intensity)"
+"""``Appearance.storage_from``: how a bone-dark image's storage was decided (``dark_storage``)."""
+
+
 @dataclass
 class Appearance:
     """How the X-ray shows bone, and why we think so (module docstring)."""
@@ -222,6 +233,7 @@ class Appearance:
     orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)", or on the mirror
     orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
     orientation_on_mirror: dict | None = None  # no clicks: {orientation: refined GC} that took the mirror
+    storage_from: str = STORAGE_FROM_IMAGE  # or the file's statement (``XrayImage.stated_storage``)
 
     @property
     def bone_dark(self) -> bool:
@@ -254,12 +266,13 @@ class Appearance:
         self.note = f"{again.note}; confirmed with {evidence} judged too (a lead of {threshold_gc} needed there)"
         self.scores["refined"] = again.scores.get("refined")
 
-    def set_storage(self, gc_by_storage: dict) -> None:
-        """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the
-        better-agreeing one (module docstring)."""
+    def set_storage(self, gc_by_storage: dict, stated: str | None = None) -> None:
+        """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the one the file
+        states (``stated``), else the better-agreeing one (``dark_storage``; module docstring)."""
         self.scores["storage"] = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
         if self.bone_dark:
-            self.storage = better_storage(gc_by_storage)
+            self.storage = dark_storage(gc_by_storage, stated)
+            self.storage_from = STORAGE_FROM_IMAGE if stated is None else STORAGE_FROM_FILE
 
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""
@@ -303,7 +316,8 @@ class Appearance:
                  "refined on the image and its mirror" if self.orientation_on_mirror is not None else
                  "on the DRR database")
         how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
-        return (f"{self.note}; stored as {self.storage.replace('-', ' ')}; matches the CT "
+        stated = " (as the file states)" if self.storage_from == STORAGE_FROM_FILE else ""
+        return (f"{self.note}; stored as {self.storage.replace('-', ' ')}{stated}; matches the CT "
                 f"{self.orientation.replace('-', ' ')} ({where}{how})")
 
     def orientation_gc(self) -> tuple[float, float]:
@@ -333,8 +347,11 @@ def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: 
             dict(zip(STORAGES, stored, strict=True)))
 
 
-def better_storage(gc_by_storage: dict) -> str:
-    """The conversion of a bone-dark image whose best DRR agrees more (``database_gc``; module docstring)."""
+def dark_storage(gc_by_storage: dict, stated: str | None = None) -> str:
+    """The conversion of a bone-dark image: the one the file states (``stated``, ``XrayImage.stated_storage``), else
+    the one whose best DRR agrees more (``database_gc``; module docstring)."""
+    if stated is not None:
+        return stated
     return max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))
 
 

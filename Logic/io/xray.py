@@ -21,7 +21,8 @@ DICOM tags used (all optional):
   intensity itself, whose -log is the attenuation (``image.prepare``, linear-intensity storage), while the
   inverted values are neither intensity nor its log (a flat-panel case of the appearance benchmark: GC 0.79
   against 0.89, levels not clicked 3.6-3.8 mm against 0.4-0.6 mm with the values kept); they are kept as stored
-  and the image is shown bone dark (``meta["note_linear_intensity"]``).
+  and the image is shown bone dark (``meta["note_linear_intensity"]``). Such a file states its storage, linear
+  intensity, whatever its photometric interpretation (``sources["storage"]``, ``XrayImage.stated_storage``).
 
 Pixels
 ------

@@ -19,6 +19,7 @@ from carmreg.logic.io.limits import check_dicom_size
 from carmreg.logic.io.xray_image import (
     DEFAULT_BONE_DARK,
     EXPLICIT_POLARITY_SOURCE,
+    LINEAR_INTENSITY_SOURCE,
     PRIVATE_CREATOR,
     PRIVATE_GROUP,
     PRIVATE_PRINCIPAL_POINT,
@@ -59,6 +60,8 @@ def read_dicom(path: Path, frame: int | None) -> XrayParts:
         meta["warning_unreadable_elements"] = ", ".join(dropped[:6]) + (" ..." if len(dropped) > 6 else "")
     part = XrayParts(pixels, True, meta=meta)
     part.bone_dark, part.sources["bone_dark"] = _dicom_bone_dark(ds, modality, inverted)
+    if _stores_linear_intensity(ds):
+        part.sources["storage"] = LINEAR_INTENSITY_SOURCE
     _dicom_geometry(ds, part, frame, path)
     return part
 

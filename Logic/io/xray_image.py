@@ -24,6 +24,8 @@ PRIVATE_CREATOR = "CarmReg"
 PRIVATE_PRINCIPAL_POINT = 0x01  # (0029,xx01) DS: u0 \ v0 in px (column, row)
 EXPLICIT_POLARITY_SOURCE = "DICOM (0028,1041) PixelIntensityRelationshipSign"
 """``XrayImage.sources["bone_dark"]`` of a file that states its polarity (the rest are defaults for the type)."""
+LINEAR_INTENSITY_SOURCE = "DICOM (0028,1040) PixelIntensityRelationship LIN, sign +1"
+"""``XrayImage.sources["storage"]`` of a file that states it stores the X-ray intensity itself (linear intensity)."""
 DEFAULT_BONE_DARK = {"XA": True, "RF": True, "DX": False, "CR": False}
 MAX_XRAY_PIXELS = 64 * 1024**2
 """Largest single X-ray frame accepted (pixels); real detectors are below ~20 Mpx."""
@@ -58,6 +60,13 @@ class XrayImage:
         """The file states which way bone is shown (DICOM PixelIntensityRelationshipSign), rather than CarmReg
         assuming a default for its type; ``image.appearance`` weighs a stated polarity as evidence."""
         return self.sources.get("bone_dark", "").startswith(EXPLICIT_POLARITY_SOURCE)
+
+    @property
+    def stated_storage(self) -> str | None:
+        """The storage the file states: "linear-intensity" when it stores the X-ray intensity itself (DICOM
+        PixelIntensityRelationship LIN with sign +1, ``sources["storage"]``), else None (``image.appearance`` then
+        finds it from the image)."""
+        return "linear-intensity" if self.sources.get("storage") == LINEAR_INTENSITY_SOURCE else None
 
     @property
     def size_px(self) -> tuple[int, int]:

@@ -26,14 +26,16 @@ def _dicom_uids(modality: str):
 
 def write_xray_dicom(path: str | Path, pixels_uint16: np.ndarray, intrinsics: CarmIntrinsics, *,
                      sod_mm: float | None = None, modality: str = "XA", patient_name: str = "CarmReg^Sample",
-                     bone_dark: bool = True) -> Path:
+                     bone_dark: bool = True, storage: str = "log-display") -> Path:
     """Write a single-frame 16-bit MONOCHROME2 X-ray DICOM (explicit VR little endian), atomically.
 
     pixels_uint16: (rows, columns) image[row, column]; must match ``intrinsics.size_px``.
     Geometry written: DistanceSourceToDetector = sdd_mm, ImagerPixelSpacing = [row spacing, column
     spacing] (DICOM order), DistanceSourceToPatient and EstimatedRadiographicMagnificationFactor =
     sdd/sod when ``sod_mm`` is given, the principal point in private tag (0029,1001) "CarmReg".
-    ``bone_dark`` sets PixelIntensityRelationshipSign (+1 bone dark, -1 bone bright).
+    ``bone_dark`` sets PixelIntensityRelationshipSign (+1 bone dark, -1 bone bright); ``storage`` sets
+    PixelIntensityRelationship: "log-display" LOG (CarmReg's simulator writes a log display), "linear-intensity" LIN
+    (the X-ray intensity itself, which a reader may then convert with -log: ``XrayImage.stated_storage``).
     """
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian
@@ -44,6 +46,8 @@ def write_xray_dicom(path: str | Path, pixels_uint16: np.ndarray, intrinsics: Ca
     if (pixels.shape[1], pixels.shape[0]) != tuple(intrinsics.size_px):
         raise ValueError(f"image is {pixels.shape[1]}x{pixels.shape[0]} px but intrinsics.size_px is "
                          f"{intrinsics.size_px}")
+    if storage not in ("log-display", "linear-intensity"):
+        raise ValueError(f"storage must be 'log-display' or 'linear-intensity', got {storage!r}")
     sop_class, sop_instance, study_uid, series_uid = _dicom_uids(modality)
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = sop_class
@@ -63,7 +67,7 @@ def write_xray_dicom(path: str | Path, pixels_uint16: np.ndarray, intrinsics: Ca
                                                                                              "SECONDARY"]
     ds.Manufacturer = "CarmReg"
     _set_pixels(ds, pixels)
-    ds.PixelIntensityRelationship = "LIN" if bone_dark else "LOG"
+    ds.PixelIntensityRelationship = "LIN" if storage == "linear-intensity" else "LOG"
     ds.PixelIntensityRelationshipSign = 1 if bone_dark else -1
     _set_geometry(ds, intrinsics, sod_mm)
     atomic_write(path, lambda tmp: ds.save_as(tmp, enforce_file_format=True))

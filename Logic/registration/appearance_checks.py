@@ -38,7 +38,7 @@ from carmreg.logic.image.appearance import (
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     WITHOUT_SHADING_MM,
-    better_storage,
+    dark_storage,
     database_gc,
     database_orientation,
     decide_polarity,
@@ -118,7 +118,7 @@ class AppearanceChecks:
             a.scores["at_clicks"] = state.click_polarity.as_dict()
         if state.image_polarity is not None:
             a.scores["without_clicks"] = state.image_polarity.as_dict()
-        a.set_storage(gc_by_storage)
+        a.set_storage(gc_by_storage, state.xray.stated_storage)
         a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
                                              a.bone_dark))
         self._use_appearance(state, a, gc_by_storage)
@@ -262,7 +262,7 @@ class AppearanceChecks:
         """The storage and the database's orientation verdict of a polarity verdict taken ``again`` (the orientation
         scores of the appearance in use when the polarity is the same, else measured under the new one)."""
         a, xray = state.appearance, state.xray
-        again.set_storage(gc_by_storage)
+        again.set_storage(gc_by_storage, state.xray.stated_storage)
         again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
             xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
 
@@ -364,19 +364,19 @@ class AppearanceChecks:
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
         """The leading labellings registered under both polarities (``click_polarity``); None without enough
-        identifiable clicks. A bone-dark image is converted with its better-agreeing storage."""
+        identifiable clicks. A bone-dark image is converted with its storage (``dark_storage``)."""
         p, clicks = state.parameters, state.xray_landmarks
         if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
             return None
-        dark_storage = better_storage(gc_by_storage)
-        contexts = self._polarity_contexts(state, dark_storage)
+        storage = dark_storage(gc_by_storage, state.xray.stated_storage)
+        contexts = self._polarity_contexts(state, storage)
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
 
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.1 + 0.8 * done / max(total, 1),
                          f"telling bone-dark from bone-bright at the clicks ({done + 1} of {total})")
 
-        return polarity_at_clicks(contexts, plan, dark_storage, p.identify.rule, progress)
+        return polarity_at_clicks(contexts, plan, storage, p.identify.rule, progress)
 
     @staticmethod
     def _known_gc(state: RegistrationState, gc_by_storage: dict) -> np.ndarray | None:
@@ -456,18 +456,19 @@ class AppearanceChecks:
 
     def polarity_from_image(self, state: RegistrationState, gc_by_storage: dict, orientation: str = "as-stored",
                              without_shading_mm: float = 0.0) -> ImagePolarity:
-        """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``), the
-        starts the levels stage takes under that polarity. A bone-dark image is converted with its better storage.
-        ``orientation``: judged on that orientation of the image (``oriented_context``; the database's GC map, which
-        is the stored image's, is then not reused). ``without_shading_mm`` > 0: the X-ray, the database and the
-        refinements' DRRs compared without their shading above that scale (``image.shading``)."""
-        dark_storage = better_storage(gc_by_storage)
-        contexts = self._polarity_contexts(state, dark_storage)
+        """Without clicks: each polarity's spatial-map peaks refined on the image alone (``image_polarity``),
+        the starts the levels stage takes under that polarity. A bone-dark image is converted with its storage
+        (``dark_storage``). ``orientation``: judged on that orientation of the image (``oriented_context``; the
+        database's GC map, which is the stored image's, is then not reused). ``without_shading_mm`` > 0: the
+        X-ray, the database and the refinements' DRRs compared without their shading above that scale
+        (``image.shading``)."""
+        storage = dark_storage(gc_by_storage, state.xray.stated_storage)
+        contexts = self._polarity_contexts(state, storage)
         if orientation != "as-stored":
             contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}
         if without_shading_mm > 0:
             contexts = {polarity: unshaded_context(ctx, without_shading_mm) for polarity, ctx in contexts.items()}
-        stored_gc = gc_by_storage[dark_storage] if orientation == "as-stored" else None
+        stored_gc = gc_by_storage[storage] if orientation == "as-stored" else None
         starts, maps = self._image_alone_starts(state, contexts, stored_gc, without_shading_mm)
 
         where = "" if orientation == "as-stored" else f" on the image {orientation.replace('-', ' ')}"

@@ -12,7 +12,7 @@ from scipy import ndimage
 from simulated_cases import simulated_ap_case
 
 from carmreg.logic.errors import CancelledError
-from carmreg.logic.image.appearance import decide_polarity
+from carmreg.logic.image.appearance import STORAGE_FROM_FILE, STORAGE_FROM_IMAGE, decide_polarity
 from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to, rank_image
 from carmreg.logic.io.landmarks import Landmarks2D
@@ -103,6 +103,23 @@ def test_the_users_polarity_wins_but_a_clear_contradiction_is_not_trusted():
     refined = decide_polarity({"bone-dark": 0.30, "bone-bright": 0.28}, {"bone-dark": 0.3, "bone-bright": 0.6},
                               "auto", True, "header", None)
     assert (refined.polarity, refined.decided_by, refined.clear) == ("bone-bright", "image (refined)", True)
+
+
+def test_a_bone_dark_image_takes_the_storage_its_file_states_else_the_better_agreeing_one():
+    """The image's storage verdict is weak (report case 131: log display 0.52 against linear 0.38 on an image stored
+    LIN); a stated storage is used, the image's scores kept. A bone-bright image keeps its log display."""
+    gc = {"linear-intensity": np.array([0.1, 0.38]), "log-display": np.array([0.52, 0.2])}
+    found = decide_polarity({"bone-dark": 0.5, "bone-bright": 0.2}, None, "auto", True, "header", None)
+    found.set_storage(gc)
+    assert (found.storage, found.storage_from) == ("log-display", STORAGE_FROM_IMAGE)
+    stated = decide_polarity({"bone-dark": 0.5, "bone-bright": 0.2}, None, "auto", True, "header", None)
+    stated.set_storage(gc, "linear-intensity")
+    assert (stated.storage, stated.storage_from) == ("linear-intensity", STORAGE_FROM_FILE)
+    assert stated.scores["storage"] == pytest.approx({"linear-intensity": 0.38, "log-display": 0.52})
+    assert "as the file states" in stated.summary() and "as the file states" not in found.summary()
+    bright = decide_polarity({"bone-dark": 0.2, "bone-bright": 0.5}, None, "auto", True, "header", None)
+    bright.set_storage(gc, "linear-intensity")
+    assert (bright.storage, bright.storage_from) == ("log-display", STORAGE_FROM_IMAGE)
 
 
 def test_without_clicks_a_refined_lead_under_0_22_is_used_but_not_clear():

@@ -140,6 +140,21 @@ def test_monochrome1_linear_intensities_are_kept_as_stored(xa_path, pixels, rela
     assert ("note_linear_intensity" in image.meta) is kept and ("note_inverted" in image.meta) is not kept
 
 
+@pytest.mark.parametrize("photometric", ["MONOCHROME1", "MONOCHROME2"])
+@pytest.mark.parametrize("relationship, sign, stated", [("LIN", 1, "linear-intensity"), ("LIN", -1, None),
+                                                        ("LOG", 1, None), (None, None, None)])
+def test_a_file_that_stores_the_intensity_itself_states_linear_storage(xa_path, photometric, relationship, sign,
+                                                                       stated):
+    """PixelIntensityRelationship LIN with sign +1 (either photometric interpretation) states linear intensity,
+    which the appearance then uses; anything else leaves the storage to the image."""
+    changes = {"PhotometricInterpretation": photometric}
+    changes.update({k: v for k, v in (("PixelIntensityRelationship", relationship),
+                                      ("PixelIntensityRelationshipSign", sign)) if v is not None})
+    image = load_xray(_edit(xa_path, **changes))
+    assert image.stated_storage == stated
+    assert ("storage" in image.sources) is (stated is not None)
+
+
 @pytest.mark.parametrize("modality, sign, expected", [("XA", None, True), ("RF", None, True),
                                                       ("DX", None, False), ("CR", None, False),
                                                       ("DX", 1, True), ("XA", -1, False)])
