@@ -58,8 +58,7 @@ recorded, and ``Appearance.storage_from`` says which rule decided. The file's wo
 weak: on a lumbar flat-panel image stored LIN (report case 131 of the appearance benchmark, second CT) the log
 display agreed more, 0.52 against 0.38, and the refined agreement then reached only 0.67 (0.86 on the same
 scene stored log), the contest's winner a wrong labelling kept from confidence only by the orientation check.
-Bone-bright images are attenuation-like by construction and
-are used linearly, ``L = (S - S_lo) / range``.
+Bone-bright images are attenuation-like by construction and are used linearly, ``L = (S - S_lo) / range``.
 
 Orientation
 -----------
