@@ -22,6 +22,7 @@ this module only orders the checks and keeps their evidence in ``appearance.scor
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 
@@ -79,6 +80,19 @@ from carmreg.logic.registration.levels import plan_contest
 from carmreg.logic.registration.preflight import MIN_CLICKS
 from carmreg.logic.registration.spatial import spatial_search
 from carmreg.logic.registration.state import RegistrationState
+
+
+@contextlib.contextmanager
+def _all_or_nothing(state: RegistrationState):
+    """The appearance, the polarity evidence at the clicks and the warnings as they were should the block raise (a
+    cancel): a check judged again with the levels' winner never leaves them half updated (a re-run could then trust
+    an orientation never checked at the clicks)."""
+    kept = (copy.deepcopy(state.appearance), state.click_polarity, list(state.warnings))
+    try:
+        yield
+    except BaseException:
+        state.appearance, state.click_polarity, state.warnings[:] = kept
+        raise
 
 
 class AppearanceChecks:
@@ -312,17 +326,13 @@ class AppearanceChecks:
         if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
             a.scores["at_clicks_with_winner"] = extended.as_dict()
             return a.trusted
-        kept = (copy.deepcopy(a), cp, list(state.warnings))
-        try:
+        with _all_or_nothing(state):
             a.take_polarity_verdict(again, f"the levels' winner {', '.join(winner.labels)}", CLEAR_WITH_WINNER_GC)
             a.scores["at_clicks"] = extended.as_dict()
             state.click_polarity = extended
             a.set_orientation(a.orientation_scores)  # the database's verdict, which the clicks' may not overrule
             self._orientation_at_clicks(state, "levels", clear_gc=CLEAR_WITH_WINNER_GC)
             self._appearance_warnings(state)
-        except BaseException:
-            state.appearance, state.click_polarity, state.warnings[:] = kept
-            raise
         return a.trusted
 
     def _orientation_with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
@@ -340,14 +350,10 @@ class AppearanceChecks:
         judged = a.orientation_at_clicks["labels"] if a.orientation_at_clicks is not None else None
         if judged is None or list(winner.labels) in [list(lb) for lb in judged]:
             return a.trusted
-        kept = (copy.deepcopy(a), list(state.warnings))
-        try:
+        with _all_or_nothing(state):
             self._orientation_at_clicks(state, "levels", winner=winner)
             self._appearance_warnings(state)
-        except BaseException:
-            state.appearance, state.warnings[:] = kept
-            raise
-        return state.appearance.trusted
+        return a.trusted
 
     @staticmethod
     def _refused_at_clicks(a) -> bool:

@@ -273,9 +273,12 @@ class CarmRegLogic:
             ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
                                         appearance_clear, registered=reuse)
         else:
+            def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
+                return self._appearance.with_winner(state, winner)
+
             ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
                                     registered=self._registered_at_clicks(state),
-                                    judge_appearance=lambda winner: self._appearance.with_winner(state, winner))
+                                    judge_appearance=None if state.appearance is None else judge)
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
