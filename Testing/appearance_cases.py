@@ -18,8 +18,8 @@ from carmreg.logic.registration.state import RegistrationParameters
 def appearance_case_registrar(tmp_path_factory, cache_name: str, with_clicks: bool):
     """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that case and
     variant of the appearance benchmark, on the case's CT (``CaseMaker.ct_name``: every third case the second CT),
-    with its unnamed clicks or none (a cache named ``cache_name`` of their own); a case of the second CT skips the
-    test without ../shared."""
+    with its unnamed clicks or none (a cache named ``cache_name`` of their own), or its clicks named ``names`` when
+    given; a case of the second CT skips the test without ../shared."""
     sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
@@ -27,7 +27,7 @@ def appearance_case_registrar(tmp_path_factory, cache_name: str, with_clicks: bo
     maker = bench.CaseMaker(second_ct=True)
     params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / cache_name))
 
-    def registered(case: int, variant_name: str):
+    def registered(case: int, variant_name: str, names: list[str] | None = None):
         if case % 3 == 2 and "abdomen" not in maker.cts:
             pytest.skip("the second CT (../shared) is not here")
         (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
@@ -38,7 +38,8 @@ def appearance_case_registrar(tmp_path_factory, cache_name: str, with_clicks: bo
         xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
         uv_px = np.asarray(record["truth"]["clicks_uv_px"] if with_clicks else np.zeros((0, 2)), float)
         logic = CarmRegLogic()
-        state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv_px), uv_px), params)
+        labels = list(names) if names is not None else [None] * len(uv_px)
+        state = logic.prepare(ct, centroids, xray, Landmarks2D(labels, uv_px), params)
         for stage in ("database", "spatial"):
             logic.run_stage(state, stage)
         return logic, state, record["truth"]

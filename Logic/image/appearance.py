@@ -167,6 +167,8 @@ CHECKED_REFINED_GC = 0.35   # no clicks: a clear verdict leading by less than th
 WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed above this scale (detector mm)
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
 REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"
+REFINED_ON_MIRROR_WITHOUT_SHADING = f"{REFINED_ON_MIRROR}, without the shading above {WITHOUT_SHADING_MM:g} mm"
+AT_CLICKS = (REFINED_AT_CLICKS, REFINED_ON_MIRROR, REFINED_AT_CLICKS_WITHOUT_SHADING, REFINED_ON_MIRROR_WITHOUT_SHADING)
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
@@ -405,7 +407,7 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         evidence, threshold, by = database, CLEAR_POLARITY_GC, "image"
     else:
         evidence, threshold, by = refined, CLEAR_REFINED_GC, f"image ({refined_by})"
-    if refined is not None and refined_by in (REFINED_AT_CLICKS, REFINED_ON_MIRROR, REFINED_AT_CLICKS_WITHOUT_SHADING):
+    if refined is not None and refined_by in AT_CLICKS:
         threshold = CLEAR_CLICKS_GC
         seen, gap, clear = verdict_at_clicks(refined, fits or {})
         why = ("no registration of it keeps the clicks fitted" if not (fits or {}).get(seen) else

@@ -8,10 +8,11 @@ runs only when the verdict before it left the question open and the user did not
    map's peaks refined on the image alone under both (``image_polarity``); ``decide_polarity`` takes the verdict;
 3. the display's orientation from the database (``orientation_scores``) and, with clicks and a clear polarity,
    at the clicks (``click_orientation``);
-4. the image mirrored left-right, with clicks (``_polarity_on_mirror``) or without (``_polarity_on_mirror_without_
-   clicks``): a mirrored display is refused;
-5. a second opinion without the image's shading, with clicks (``_polarity_at_clicks_without_shading``) or without
-   (``_polarity_without_shading``);
+4. with clicks, a second opinion without the image's shading (``_polarity_at_clicks_without_shading``), then the
+   image mirrored left-right (``_polarity_on_mirror``; without the shading too when the second opinion is clear):
+   a mirrored display is refused;
+5. without clicks, the image mirrored left-right (``_polarity_on_mirror_without_clicks``; a mirrored display is
+   refused), then a second opinion without the image's shading (``_polarity_without_shading``);
 6. the warnings on the appearance.
 
 ``with_winner`` is the levels stage's ``judge_appearance``: the contest's winner judged at the clicks too. The
@@ -36,6 +37,7 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_DATABASE_POSES,
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
+    REFINED_ON_MIRROR_WITHOUT_SHADING,
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     WITHOUT_SHADING_MM,
@@ -137,14 +139,47 @@ class AppearanceChecks:
                                              a.bone_dark))
         self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
-        self._polarity_on_mirror(state, gc_by_storage)
-        self._polarity_at_clicks_without_shading(state, gc_by_storage)
+        unshaded = self._polarity_at_clicks_without_shading(state, gc_by_storage)
+        self._polarity_on_mirror(state, gc_by_storage, unshaded)
         self._polarity_on_mirror_without_clicks(state, gc_by_storage)
         self._polarity_without_shading(state, gc_by_storage)
         self._appearance_warnings(state)
         return state.appearance.as_dict()
 
-    def _polarity_on_mirror(self, state: RegistrationState, gc_by_storage: dict) -> None:
+    def _polarity_at_clicks_without_shading(self, state: RegistrationState, gc_by_storage: dict
+                                            ) -> ClickPolarity | None:
+        """With clicks, a polarity unclear at them on an image taken as stored (the user did not set it): the second
+        opinion. The leading labellings registered again under both polarities exactly as by
+        ``polarity_at_clicks``, but the X-ray and every DRR of the refinements compared without their shading above
+        ``WITHOUT_SHADING_MM`` (``image.shading``): on a large patient the shading outweighs the faint bone (seen:
+        a bone-bright large patient of the second CT, taken bone dark at the clicks by an unclear 0.032, bone bright
+        there by a clear 0.36). When its verdict is clear (``verdict_at_clicks``) and names the other
+        polarity, that polarity is used, never clear (``Appearance.as_second_opinion``): the levels stage
+        registers on the image as stored converted with it, and only the contest's winner judged at the clicks
+        too (``with_winner``) can make it clear. Otherwise the appearance stays as it was (still unclear). Either
+        way ``scores["at_clicks_without_shading"]`` records it. It runs before the check on the mirror
+        (``_polarity_on_mirror``), which judges the mirror without the shading too when this verdict is clear.
+        Returns the evidence without the shading when its verdict is clear, else None."""
+        a, cp, p = state.appearance, state.click_polarity, state.parameters
+        if cp is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
+            return None
+        unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
+                                              state.xray_landmarks, "at the clicks without the image's shading")
+        a.scores["at_clicks_without_shading"] = second = unshaded.as_dict()
+        again = self._polarity_again(state, unshaded.scores, REFINED_AT_CLICKS_WITHOUT_SHADING, unshaded.fits)
+        if not again.clear:
+            return None
+        if again.polarity == a.polarity:
+            return unshaded
+        again.as_second_opinion(a)
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})
+        again.scores["at_clicks_without_shading"] = second
+        self._database_verdicts(state, again, gc_by_storage)
+        self._use_appearance(state, again, gc_by_storage)
+        return unshaded
+
+    def _polarity_on_mirror(self, state: RegistrationState, gc_by_storage: dict,
+                            unshaded: ClickPolarity | None = None) -> None:
         """With clicks, and a polarity the image left unclear at them (the user did not set it): the polarity judged
         again on the image mirrored left-right, the clicks mirrored with it, exactly as at the clicks
         (``polarity_at_clicks``; a mirrored display shows no aligned spine as stored, under either polarity). Taken
@@ -152,49 +187,39 @@ class AppearanceChecks:
         ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
         ``Appearance.set_orientation_at_clicks``): the display is mirrored, the image refused, no level answer
         confident. Otherwise the appearance stays as it was, with the mirror's evidence recorded
-        (``scores["on_mirror"]``)."""
+        (``scores["on_mirror"]``). ``unshaded``: the second opinion's evidence at the clicks when its verdict is
+        clear (``_polarity_at_clicks_without_shading``); the mirror is then judged without the shading too and
+        compared with it: judged with the shading, a large patient's shading can fit the mirror better than the
+        faint bone fits as stored (seen: report case 125, bone bright, names one level off: unclear at the clicks,
+        bone bright without the shading by 0.39, then taken bone dark and mirrored on the mirror by 0.27)."""
         a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
         if cp is None or a.clear or p.polarity in POLARITIES:
             return
-        mirrored = self._leaders_judged_again(state, lambda ctx: oriented_context(ctx, MIRROR),
-                                              turned_clicks(state.xray_landmarks, MIRROR, xray.size_px),
-                                              "on the image mirrored left-right")
+        if unshaded is None:
+            stored, refined_by, where = cp, REFINED_ON_MIRROR, "on the image mirrored left-right"
+        else:
+            stored, refined_by = unshaded, REFINED_ON_MIRROR_WITHOUT_SHADING
+            where = "on the image mirrored left-right, without its shading"
+        mirrored = self._leaders_judged_again(state, lambda ctx: self._on_mirror(ctx, unshaded is not None),
+                                              turned_clicks(state.xray_landmarks, MIRROR, xray.size_px), where)
         a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
-        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR, mirrored.fits)
+        again = self._polarity_again(state, mirrored.scores, refined_by, mirrored.fits)
         if not again.clear:
             return
-        again.scores.update(at_clicks=a.scores["at_clicks"], on_mirror=on_mirror)
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})
+        again.scores["on_mirror"] = on_mirror
         self._database_verdicts(state, again, gc_by_storage)
-        again.set_orientation_at_clicks(stored_against_turned(cp, mirrored, MIRROR, again.polarity,
+        again.set_orientation_at_clicks(stored_against_turned(stored, mirrored, MIRROR, again.polarity,
                                                               p.identify.rule).as_dict())
         if again.orientation == MIRROR:
             self._use_appearance(state, again, gc_by_storage)
 
-    def _polarity_at_clicks_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:
-        """With clicks, a polarity still unclear at them on an image taken as stored (the user did not set it): the
-        second opinion. The leading labellings registered again under both polarities exactly as by
-        ``polarity_at_clicks``, but the X-ray and every DRR of the refinements compared without their shading above
-        ``WITHOUT_SHADING_MM`` (``image.shading``): on a large patient the shading outweighs the faint bone (seen:
-        a bone-bright large patient of the second CT, taken bone dark at the clicks by an unclear 0.032, bone bright
-        there by a clear 0.36). When its verdict is clear (``verdict_at_clicks``) and names the other
-        polarity, that polarity is used, never clear (``Appearance.as_second_opinion``): the levels stage
-        registers on the image as stored converted with it, and only the contest's winner judged at the clicks
-        too (``with_winner``) can make it clear. Otherwise the appearance stays as it was. Either way
-        ``scores["at_clicks_without_shading"]`` records it."""
-        a, cp, p = state.appearance, state.click_polarity, state.parameters
-        if cp is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
-            return
-        unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
-                                              state.xray_landmarks, "at the clicks without the image's shading")
-        a.scores["at_clicks_without_shading"] = second = unshaded.as_dict()
-        again = self._polarity_again(state, unshaded.scores, REFINED_AT_CLICKS_WITHOUT_SHADING, unshaded.fits)
-        if not again.clear or again.polarity == a.polarity:
-            return
-        again.as_second_opinion(a)
-        again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_mirror"))})
-        again.scores["at_clicks_without_shading"] = second
-        self._database_verdicts(state, again, gc_by_storage)
-        self._use_appearance(state, again, gc_by_storage)
+    @staticmethod
+    def _on_mirror(ctx: FitContext, without_shading: bool) -> FitContext:
+        """``ctx`` on the image mirrored left-right, compared without its shading above ``WITHOUT_SHADING_MM`` when
+        ``without_shading``."""
+        mirrored = oriented_context(ctx, MIRROR)
+        return unshaded_context(mirrored, WITHOUT_SHADING_MM) if without_shading else mirrored
 
     def _leaders_judged_again(self, state: RegistrationState, change, clicks: Landmarks2D, where: str
                               ) -> ClickPolarity:

@@ -1,26 +1,27 @@
 """With clicks, the second opinion on the polarity (``appearance_checks._polarity_at_clicks_without_shading``), on
-tune cases of the appearance benchmark (the second CT): a clear verdict without the image's shading that names the
-other polarity is used, never clear; none is asked when the clicks' verdict is clear."""
+cases of the appearance benchmark (the second CT): a clear verdict without the image's shading that names the
+other polarity is used, never clear; one that agrees has the mirror judged without the shading too
+(``_polarity_on_mirror``); none is asked when the clicks' verdict is clear."""
 
 import pytest
 from appearance_cases import appearance_case_registrar
 
-from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WITHOUT_SHADING
+from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WITHOUT_SHADING, REFINED_ON_MIRROR
 
 
 @pytest.fixture(scope="module")
-def tune_case(tmp_path_factory):
+def registered(tmp_path_factory):
     """``registered(case, variant)``: (logic, the state after the spatial stage, truth) with its unnamed clicks."""
     return appearance_case_registrar(tmp_path_factory, "clicks-shading-cache", with_clicks=True)
 
 
 @pytest.mark.slow
-def test_a_large_patient_taken_bone_dark_at_the_clicks_is_put_right_without_its_shading_but_never_clear(tune_case):
+def test_a_large_patient_taken_bone_dark_at_the_clicks_is_put_right_without_its_shading_but_never_clear(registered):
     """Case 92's large patient (the second CT), stored bone bright in a 16-bit TIFF, three unnamed clicks. Stop 31:
     at the clicks bone dark by an unclear 0.032 (0.356 against 0.324); without the shading above 20 mm bone bright,
     0.523 against 0.167. Its polarity is used, not clear, and the levels stage registers on the image as stored
     converted bone bright: the right labelling wins (it had been L1-L3, bone dark), ambiguous."""
-    logic, state, truth = tune_case(92, "fp-bright-large-tiff")
+    logic, state, truth = registered(92, "fp-bright-large-tiff")
     a = state.appearance
     first = a.scores["at_clicks"]["scores"]
     second = a.scores["at_clicks_without_shading"]["scores"]
@@ -36,8 +37,28 @@ def test_a_large_patient_taken_bone_dark_at_the_clicks_is_put_right_without_its_
 
 
 @pytest.mark.slow
-def test_no_second_opinion_is_asked_when_the_clicks_tell_the_polarity_clearly(tune_case):
+def test_no_second_opinion_is_asked_when_the_clicks_tell_the_polarity_clearly(registered):
     """Case 86's flat panel, stored bone dark as linear intensity (DICOM): clear at the clicks, nothing more asked."""
-    _, state, _ = tune_case(86, "fp-dark-linear-dcm")
+    _, state, _ = registered(86, "fp-dark-linear-dcm")
     a = state.appearance
     assert (a.polarity, a.clear) == ("bone-dark", True) and "at_clicks_without_shading" not in a.scores
+
+
+@pytest.mark.slow
+def test_a_large_patient_named_one_level_off_is_not_taken_mirrored_on_its_shading(registered):
+    """Report case 125's large patient (the second CT, L3-L5 clicked), stored bone bright in a 16-bit TIFF, the
+    clicks named one level off (L4, L5, S1). At the clicks bone bright by an unclear 0.047; on the mirror, judged
+    with the shading, bone dark by 0.27 and the mirror 0.12 ahead of the image as stored: stop 33 took it bone dark
+    and mirrored (the polarity wrong). Without the shading bone bright by 0.39, clearly: the mirror is judged without
+    the shading too, and the image stays as stored, bone bright, never clear; the wrong names are never confident."""
+    logic, state, truth = registered(125, "fp-bright-large-tiff", names=["L4", "L5", "S1"])
+    assert list(truth["clicked"]) == ["L3", "L4", "L5"]
+    a = state.appearance
+    first = a.scores["at_clicks"]["scores"]
+    second = a.scores["at_clicks_without_shading"]["scores"]
+    assert first["bone-dark"] < first["bone-bright"] < first["bone-dark"] + CLEAR_CLICKS_GC  # right, unclear
+    assert second["bone-bright"] >= second["bone-dark"] + CLEAR_CLICKS_GC  # right, clearly
+    assert (a.polarity, a.clear, a.orientation) == ("bone-bright", False, "as-stored")
+    assert "on_mirror" in a.scores and REFINED_ON_MIRROR not in a.decided_by
+    logic.run_stage(state, "levels")
+    assert state.identification.status != "confident"
