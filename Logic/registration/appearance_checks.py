@@ -70,7 +70,7 @@ from carmreg.logic.registration.click_polarity import (
     registered_as_leader,
 )
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
-from carmreg.logic.registration.image_starts import image_starts, tilted_starts
+from carmreg.logic.registration.image_starts import image_starts
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
@@ -517,9 +517,8 @@ class AppearanceChecks:
                             without_shading_mm: float) -> tuple[dict, dict]:
         """({polarity: [(6,) start]}, {polarity: spatial map}) of each context's image on the coarse database
         (``image_starts``, ``spatial_search``). ``stored_gc``: the bone-dark image's map when already computed
-        (``database_gc``), else None. ``without_shading_mm`` > 0 (the second opinion): the database and the images
-        less their shading, no map (only the plain image's serves the spatial stage), and each polarity's best start
-        tilted out of the image plane too (``tilted_starts``: four more refinements per polarity)."""
+        (``database_gc``), else None. ``without_shading_mm`` > 0: the database and the images less their shading,
+        and no map (only the plain image's serves the spatial stage)."""
         p, db = state.parameters, state.database
         rows, cols = db.drrs.shape[2:]
         mask_coarse = bin_mask_to(contexts["bone-dark"].mask, state.coarse_factor, (rows, cols))
@@ -537,6 +536,4 @@ class AppearanceChecks:
                 maps[polarity] = spatial_search(db, coarse, mask_coarse, p.metric, (p.metric,),
                                                 known=known).maps[p.metric]
             starts[polarity] = image_starts(db, coarse, mask_coarse, p.identify.image_starts)
-            if remove is not None and starts[polarity]:
-                starts[polarity] += tilted_starts(starts[polarity][0])
         return starts, maps

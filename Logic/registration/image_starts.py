@@ -34,7 +34,6 @@ from carmreg.logic.registration.database import DrrDatabase
 from carmreg.logic.similarity.metrics import gc_against_each
 
 IN_PLANE_DEG = (-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0)
-TILT_DEG = 8.0  # the no-click second opinion's best start also tilted by this, +- about ry and about rz (stop 34)
 
 
 def spatial_peaks(score_map: np.ndarray, ty_mm: np.ndarray, tz_mm: np.ndarray, count: int,
@@ -91,13 +90,3 @@ def image_starts(db: DrrDatabase, xray_coarse: np.ndarray, mask_coarse: np.ndarr
     best, angle = turned_maps(db, xray_coarse, mask_coarse)
     return [np.array([db.tx_mm, float(db.ty_mm[iy]), float(db.tz_mm[iz]), 0.0 - angle[iy, iz], 0.0, 0.0])
             for iy, iz in _peak_cells(best, db.ty_mm, db.tz_mm, count)]  # 0.0 - a: never -0.0
-
-
-def tilted_starts(start: np.ndarray, tilt_deg: float = TILT_DEG) -> list[np.ndarray]:
-    """``start`` (6,) tilted out of the image plane: ry + t, ry - t, rz + t, rz - t (t = ``tilt_deg``, degrees),
-    four poses. The database holds no tilt and a refinement from an untilted start can stop short of a view tilted
-    by ~10 deg about both axes (seen: report case 125's large patient without clicks, ry = rz = 9.4 deg: the
-    second opinion's bone-bright refinements reached GC 0.28 without the shading, the true pose has 0.54; from its
-    best start tilted so, 0.54)."""
-    steps = ((tilt_deg, 0.0), (-tilt_deg, 0.0), (0.0, tilt_deg), (0.0, -tilt_deg))
-    return [np.asarray(start, float) + np.array([0.0, 0.0, 0.0, 0.0, ry, rz]) for ry, rz in steps]

@@ -8,14 +8,7 @@ from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.geometry.camera import CarmIntrinsics, nominal_geometry
 from carmreg.logic.geometry.volume import MuPyramid
 from carmreg.logic.registration.database import build_database
-from carmreg.logic.registration.image_starts import (
-    IN_PLANE_DEG,
-    TILT_DEG,
-    image_starts,
-    spatial_peaks,
-    tilted_starts,
-    turned_maps,
-)
+from carmreg.logic.registration.image_starts import IN_PLANE_DEG, image_starts, spatial_peaks, turned_maps
 from carmreg.logic.similarity.metrics import gc, gc_against_each
 
 
@@ -25,14 +18,6 @@ def test_spatial_peaks_are_separated_local_maxima_best_first():
     score = np.exp(-((yy - 2) ** 2 + (zz - 10) ** 2) / 20) + 0.8 * np.exp(-((yy + 4) ** 2 + (zz + 16) ** 2) / 20)
     peaks = spatial_peaks(score, ty, tz, 3)
     assert peaks[:2] == [(2.0, 10.0), (-4.0, -16.0)]
-
-
-def test_tilted_starts_turn_only_ry_or_rz_each_way():
-    start = np.array([600.0, 3.0, -12.0, 2.5, 0.0, 0.0])
-    steps = np.array(tilted_starts(start)) - start
-    assert steps[:, :4].tolist() == [[0.0] * 4] * 4
-    assert sorted(map(tuple, steps[:, 4:].tolist())) == sorted(
-        [(TILT_DEG, 0.0), (-TILT_DEG, 0.0), (0.0, TILT_DEG), (0.0, -TILT_DEG)])
 
 
 @pytest.fixture(scope="module")
