@@ -97,6 +97,11 @@ def _all_or_nothing(state: RegistrationState):
         raise
 
 
+def _judged(winner: LabellingFit, labellings: list) -> bool:
+    """Whether the contest's ``winner`` is one of the ``labellings`` (lists of level names) a check judged."""
+    return list(winner.labels) in [list(lb) for lb in labellings]
+
+
 class AppearanceChecks:
     """The appearance checks of one ``CarmRegLogic`` (module docstring): ``report(stage, fraction, message)`` its
     progress hook (which raises ``CancelledError`` on a cancel), ``should_stop()`` its cancel check inside a
@@ -165,15 +170,14 @@ class AppearanceChecks:
             return None
         unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
                                               state.xray_landmarks, "at the clicks without the image's shading")
-        a.scores["at_clicks_without_shading"] = second = unshaded.as_dict()
+        a.scores["at_clicks_without_shading"] = unshaded.as_dict()
         again = self._polarity_again(state, unshaded.scores, REFINED_AT_CLICKS_WITHOUT_SHADING, unshaded.fits)
         if not again.clear:
             return None
         if again.polarity == a.polarity:
             return unshaded
         again.as_second_opinion(a)
-        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})
-        again.scores["at_clicks_without_shading"] = second
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})  # and without shading
         self._database_verdicts(state, again, gc_by_storage)
         self._use_appearance(state, again, gc_by_storage)
         return unshaded
@@ -339,7 +343,7 @@ class AppearanceChecks:
         a.scores.pop("at_clicks_with_winner", None)
         if a.trusted:
             return self._orientation_with_winner(state, winner)
-        if cp is None or list(winner.labels) in [list(lb) for lb in cp.labels]:
+        if cp is None or _judged(winner, cp.labels):
             return a.trusted
         if a.orientation != "as-stored" and not self._refused_at_clicks(a):
             return a.trusted
@@ -373,7 +377,7 @@ class AppearanceChecks:
         Whether the appearance is trusted after."""
         a = state.appearance
         judged = a.orientation_at_clicks["labels"] if a.orientation_at_clicks is not None else None
-        if judged is None or list(winner.labels) in [list(lb) for lb in judged]:
+        if judged is None or _judged(winner, judged):
             return a.trusted
         with _all_or_nothing(state):
             self._orientation_at_clicks(state, "levels", winner=winner)
