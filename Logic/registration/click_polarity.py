@@ -23,12 +23,16 @@ The image of the wrong polarity is the negative of the right one up to the stora
 no pose where the clicks and the image both agree. ``appearance.verdict_at_clicks`` says when the scores are clear;
 unnamed clicks start with ``UNNAMED_LEADERS`` labellings and add the next most plausible one until the scores
 are clear or ``MAX_UNNAMED_LEADERS`` were judged (the leading labellings can all be wrong ones: then the right
-polarity has no aligned spine to show either, and the verdict stays unclear). When it is still unclear and the
-leading registration leads without keeping the clicks fitted, the labellings one level up and down from it are
-judged too, once (``_neighbours_of_unfitted_leader``): a labelling one level off shows much of the spine aligned
-but must pull the CT off the clicks to do it, and its neighbour is the likeliest right one (seen on a mirrored
-display judged on its mirror: T8-T10 led at GC 0.69 with the clicks 4.3 mm off; T7-T9, the truth, then reached
-0.91 at 1.4 mm).
+polarity has no aligned spine to show either, and the verdict stays unclear). When it is still unclear, the
+labellings one level up and down from the leading registration (the highest GC under either polarity) are judged
+too, once (``_neighbours_of_leader``): a labelling one level off shows much of the spine aligned, and its
+neighbour is the likeliest right one (seen on a mirrored display judged on its mirror: T8-T10 led at GC 0.69 with
+the clicks 4.3 mm off; T7-T9, the truth, then reached 0.91 at 1.4 mm; and on report case 143's intensifier
+images, L4-S1 clicked unnamed, judged on L3-L5, L1-L3 and L2-L4 at GC 0.21-0.22 under either polarity with the
+leader's clicks fitted, where L4-S1 reaches 0.69 under the right one). Until stop 35 only a leader off the clicks
+had its neighbours judged. Not the other polarity's leader too: its neighbours can show the wrong polarity's
+best registration keeping the clicks by chance (tried: tune case 88's intensifier image, T7-T9 clicked, then
+took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer).
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
@@ -103,18 +107,16 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
         if count < len(leaders):
             count += 1
             continue
-        more = [] if neighbours_judged else _neighbours_of_unfitted_leader(evidence, plan, leaders)
+        more = [] if neighbours_judged else _neighbours_of_leader(evidence, plan, leaders)
         if not more:
             return evidence
         leaders, count, neighbours_judged = leaders + more, len(leaders) + len(more), True
 
 
-def _neighbours_of_unfitted_leader(evidence: ClickPolarity, plan: ContestPlan, judged: list) -> list:
-    """The plan's indices of the labellings one level up and down from the leading registration, when it leads
-    without keeping the clicks fitted and they were not judged yet (module docstring); else []."""
+def _neighbours_of_leader(evidence: ClickPolarity, plan: ContestPlan, judged: list) -> list:
+    """The plan's indices of the labellings one level up and down from the leading registration (the highest GC
+    under either polarity) not judged yet (module docstring)."""
     polarity = max(evidence.scores, key=evidence.scores.get)
-    if evidence.fits[polarity]:
-        return []
     done = evidence.registered[polarity]
     leader = done[max(range(len(done)), key=lambda i: done[i].similarity)]
     return [i for i in one_level_from(plan, {leader.shift}) if i not in judged]

@@ -95,16 +95,17 @@ def test_the_levels_winner_confirms_a_polarity_only_by_the_images_own_clear_verd
     assert not confirms(evidence(0.79, 0.07, dark_mpde=6.0, bright_mpde=6.0), "bone-dark")  # clicks not fitted
 
 
-def _staged_plan(first: list) -> ContestPlan:
-    """An unnamed plan over T1-T12 (three clicks: shift k labels T(k+1)-T(k+3)), ``first`` the most plausible."""
-    fits = [LabellingFit([f"T{k + 1}", f"T{k + 2}", f"T{k + 3}"], k, np.zeros((3, 3)), np.zeros((3, 2)))
-            for k in range(10)]
+def _staged_plan(first: list, levels: list | None = None) -> ContestPlan:
+    """An unnamed plan over ``levels`` (default T1-T12; three clicks: shift k labels levels k to k + 2), ``first``
+    the most plausible."""
+    levels = levels or [f"T{k}" for k in range(1, 13)]
+    fits = [LabellingFit(levels[k:k + 3], k, np.zeros((3, 3)), np.zeros((3, 2))) for k in range(len(levels) - 2)]
     return ContestPlan("unnamed", fits, first, None, [0, 1, 2], np.arange(3))
 
 
-def _staged_polarity_at_clicks(monkeypatch, staged: dict, first: list):
-    """``polarity_at_clicks`` with each registration staged: ``staged[polarity][shift] = (GC, mPDE mm)``; returns
-    the evidence and the shifts registered, in order."""
+def _staged_polarity_at_clicks(monkeypatch, staged: dict, first: list, levels: list | None = None):
+    """``polarity_at_clicks`` with each registration staged: ``staged[polarity][shift] = (GC, mPDE mm)``, on
+    ``_staged_plan(first, levels)``; returns the evidence and the shifts registered, in order."""
     registered = []
 
     def fit_labelling(ctx, fit):
@@ -117,7 +118,8 @@ def _staged_polarity_at_clicks(monkeypatch, staged: dict, first: list):
     monkeypatch.setattr(click_polarity, "fit_labelling", fit_labelling)
     monkeypatch.setattr(click_polarity, "landmark_fit", lambda ctx, fit: None)
     contexts = {polarity: polarity for polarity in staged}  # each context stands for its polarity's image
-    evidence = click_polarity.polarity_at_clicks(contexts, _staged_plan(first), "log-display", ConfidenceRule())
+    evidence = click_polarity.polarity_at_clicks(contexts, _staged_plan(first, levels), "log-display",
+                                                 ConfidenceRule())
     return evidence, registered
 
 
@@ -135,11 +137,27 @@ def test_a_leader_that_leads_without_keeping_the_clicks_has_its_neighbours_judge
     assert verdict_at_clicks(evidence.scores, evidence.fits) == ("bone-dark", pytest.approx(0.907 - 0.095), True)
 
 
-def test_a_leader_that_keeps_the_clicks_has_no_neighbours_judged(monkeypatch):
-    """Unclear only by a narrow lead, with the leader's clicks fitted: no neighbour is judged (its own registration
-    is the evidence), and the verdict stays unclear after the most plausible labellings."""
-    staged = {"bone-dark": {4: (0.30, 1.5), 3: (0.20, 2.0), 7: (0.25, 2.0)},
-              "bone-bright": {4: (0.28, 1.6), 3: (0.10, 2.0), 7: (0.05, 2.0)}}
-    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 7, 5])
-    assert sorted(set(registered)) == [3, 4, 7] and len(evidence.labels) == 3
+def test_a_leader_that_keeps_the_clicks_has_its_neighbours_judged_too(monkeypatch):
+    """Report case 143 of the appearance benchmark (the second CT, L1-S1; L4-S1 clicked, unnamed), an intensifier
+    image stored bone bright: the three most plausible labellings (L3-L5, L1-L3, L2-L4) left the verdict unclear,
+    bone dark leading at L3-L5 by 0.007 with its clicks fitted (3.6 mm; stop 34 judged no neighbour, took bone dark
+    and named L3-L5, ambiguous). The labellings one level from that leader are judged too (L2-L4 was; L4-S1):
+    L4-S1 reaches 0.688 bone bright with the clicks at 1.16 mm, and the verdict is clear and right."""
+    levels = ["L1", "L2", "L3", "L4", "L5", "S1"]  # shifts 0-3: L1-L3, L2-L4, L3-L5, L4-S1
+    staged = {"bone-dark": {2: (0.221, 3.61), 0: (0.148, 4.52), 1: (0.185, 5.70), 3: (0.140, 6.90)},
+              "bone-bright": {2: (0.161, 3.52), 0: (0.214, 4.36), 1: (0.084, 5.04), 3: (0.688, 1.16)}}
+    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [2, 0, 1], levels)
+    assert evidence.labels == [["L3", "L4", "L5"], ["L1", "L2", "L3"], ["L2", "L3", "L4"], ["L4", "L5", "S1"]]
+    assert registered.count(3) == 2  # L4-S1 under both polarities, once each
+    assert verdict_at_clicks(evidence.scores, evidence.fits) == ("bone-bright", pytest.approx(0.688 - 0.221), True)
+
+
+def test_only_the_leaders_neighbours_are_judged_once_and_an_unclear_verdict_then_stays_unclear(monkeypatch):
+    """Unclear after the most plausible labellings, bone dark leading at shift 4 with its clicks fitted: only its
+    neighbours are judged (shift 5; shift 3 was), not the other polarity's leader's nor the neighbours'
+    neighbours, and the verdict stays unclear."""
+    staged = {"bone-dark": {4: (0.29, 1.5), 3: (0.20, 2.0), 7: (0.25, 2.0), 5: (0.31, 1.5)},
+              "bone-bright": {4: (0.10, 1.6), 3: (0.10, 2.0), 7: (0.28, 2.0), 5: (0.29, 1.6)}}
+    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 7, 2])
+    assert sorted(set(registered)) == [3, 4, 5, 7] and len(evidence.labels) == 4
     assert not verdict_at_clicks(evidence.scores, evidence.fits)[2]
