@@ -177,7 +177,7 @@ class AppearanceChecks:
         if again.polarity == a.polarity:
             return unshaded
         again.as_second_opinion(a)
-        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})  # and without shading
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})  # this one's among them
         self._database_verdicts(state, again, gc_by_storage)
         self._use_appearance(state, again, gc_by_storage)
         return unshaded

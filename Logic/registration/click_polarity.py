@@ -117,8 +117,7 @@ def _neighbours_of_leader(evidence: ClickPolarity, plan: ContestPlan, judged: li
     """The plan's indices of the labellings one level up and down from the leading registration (the highest GC
     under either polarity) not judged yet (module docstring)."""
     polarity = max(evidence.scores, key=evidence.scores.get)
-    done = evidence.registered[polarity]
-    leader = done[max(range(len(done)), key=lambda i: done[i].similarity)]
+    leader = max(evidence.registered[polarity], key=lambda f: f.similarity)
     return [i for i in one_level_from(plan, {leader.shift}) if i not in judged]
 
 
