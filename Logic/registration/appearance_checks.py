@@ -8,7 +8,8 @@ runs only when the verdict before it left the question open and the user did not
    map's peaks refined on the image alone under both (``image_polarity``); ``decide_polarity`` takes the verdict;
 3. the display's orientation from the database (``orientation_scores``) and, with clicks and a clear polarity,
    at the clicks (``click_orientation``);
-4. with clicks, a second opinion without the image's shading (``_polarity_at_clicks_without_shading``), then the
+4. with clicks, a second opinion without the image's shading (``_polarity_at_clicks_without_shading``; asked of a
+   clear verdict by less than ``CHECKED_CLICKS_GC`` too), then the
    image mirrored left-right (``_polarity_on_mirror``; without the shading too when the second opinion is clear):
    a mirrored display is refused;
 5. without clicks, the image mirrored left-right (``_polarity_on_mirror_without_clicks``; a mirrored display is
@@ -30,6 +31,7 @@ import dataclasses
 import numpy as np
 
 from carmreg.logic.image.appearance import (
+    CHECKED_CLICKS_GC,
     CHECKED_REFINED_GC,
     POLARITIES,
     REFINED_AT_CLICKS,
@@ -153,20 +155,23 @@ class AppearanceChecks:
 
     def _polarity_at_clicks_without_shading(self, state: RegistrationState, gc_by_storage: dict
                                             ) -> ClickPolarity | None:
-        """With clicks, a polarity unclear at them on an image taken as stored (the user did not set it): the second
-        opinion. The leading labellings registered again under both polarities exactly as by
-        ``polarity_at_clicks``, but the X-ray and every DRR of the refinements compared without their shading above
-        ``WITHOUT_SHADING_MM`` (``image.shading``): on a large patient the shading outweighs the faint bone (seen:
-        a bone-bright large patient of the second CT, taken bone dark at the clicks by an unclear 0.032, bone bright
-        there by a clear 0.36). When its verdict is clear (``verdict_at_clicks``) and names the other
-        polarity, that polarity is used, never clear (``Appearance.as_second_opinion``): the levels stage
-        registers on the image as stored converted with it, and only the contest's winner judged at the clicks
-        too (``with_winner``) can make it clear. Otherwise the appearance stays as it was (still unclear). Either
-        way ``scores["at_clicks_without_shading"]`` records it. It runs before the check on the mirror
+        """With clicks, a polarity unclear at them, or clear by less than ``CHECKED_CLICKS_GC`` (the file not stating
+        a polarity), on an image taken as stored (the user did not set it): the second opinion. The leading
+        labellings registered again under both polarities exactly as by ``polarity_at_clicks``, but the X-ray and
+        every DRR of the refinements compared without their shading above ``WITHOUT_SHADING_MM``
+        (``image.shading``): on a large patient the shading outweighs the faint bone (seen: a bone-bright large
+        patient of the second CT, taken bone dark at the clicks by an unclear 0.032, bone bright there by a clear
+        0.36; report case 155's, bone dark at the clicks by a clear 0.133, 0.318 against 0.184 with the clicks
+        fitted, bone bright without the shading by 0.48). When its verdict is clear (``verdict_at_clicks``) and
+        names the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``): the levels
+        stage registers on the image as stored converted with it, and only the contest's winner judged at the
+        clicks too (``with_winner``) can make it clear. Otherwise the appearance stays as it was. Either way
+        ``scores["at_clicks_without_shading"]`` records it. It runs before the check on the mirror
         (``_polarity_on_mirror``), which judges the mirror without the shading too when this verdict is clear.
         Returns the evidence without the shading when its verdict is clear, else None."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
-        if cp is None or a.clear or p.polarity in POLARITIES or a.orientation != "as-stored":
+        settled = a.clear and (a.clarity_gc >= CHECKED_CLICKS_GC or state.xray.polarity_stated)
+        if cp is None or settled or p.polarity in POLARITIES or a.orientation != "as-stored":
             return None
         unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
                                               state.xray_landmarks, "at the clicks without the image's shading")

@@ -1,12 +1,18 @@
 """With clicks, the second opinion on the polarity (``appearance_checks._polarity_at_clicks_without_shading``), on
 cases of the appearance benchmark (the second CT): a clear verdict without the image's shading that names the
 other polarity is used, never clear; one that agrees has the mirror judged without the shading too
-(``_polarity_on_mirror``); none is asked when the clicks' verdict is clear."""
+(``_polarity_on_mirror``); none is asked when the clicks' verdict is clear by ``CHECKED_CLICKS_GC``, and a clear
+verdict by less is asked too."""
 
 import pytest
 from appearance_cases import appearance_case_registrar
 
-from carmreg.logic.image.appearance import CLEAR_CLICKS_GC, REFINED_AT_CLICKS_WITHOUT_SHADING
+from carmreg.logic.image.appearance import (
+    CHECKED_CLICKS_GC,
+    CLEAR_CLICKS_GC,
+    MIN_CLICKS_GC,
+    REFINED_AT_CLICKS_WITHOUT_SHADING,
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,10 +44,33 @@ def test_a_large_patient_taken_bone_dark_at_the_clicks_is_put_right_without_its_
 
 @pytest.mark.slow
 def test_no_second_opinion_is_asked_when_the_clicks_tell_the_polarity_clearly(registered):
-    """Case 86's flat panel, stored bone dark as linear intensity (DICOM): clear at the clicks, nothing more asked."""
+    """Case 86's flat panel, stored bone dark as linear intensity, a DICOM file stating its polarity: clear at the
+    clicks (by 0.207 at stop 35), nothing more asked."""
     _, state, _ = registered(86, "fp-dark-linear-dcm")
     a = state.appearance
     assert (a.polarity, a.clear) == ("bone-dark", True) and "at_clicks_without_shading" not in a.scores
+    assert a.clarity_gc >= CHECKED_CLICKS_GC or state.xray.polarity_stated
+
+
+@pytest.mark.slow
+def test_a_large_patient_clear_at_the_clicks_by_a_small_lead_is_checked_without_its_shading(registered):
+    """Report case 155's large patient (the second CT, L4-S1 clicked and named), stored bone bright in a 16-bit TIFF.
+    Stop 35: at the clicks bone dark *clearly*, 0.318 against 0.184 with the clicks fitted (a lead of 0.133, short
+    of ``CHECKED_CLICKS_GC``); its names stayed ambiguous only because the image agreed by 0.38 < 0.40. Without the
+    shading above 20 mm bone bright, 0.649 against 0.166: that polarity is used, never clear, and the levels stage
+    proposes no confident answer on it."""
+    logic, state, truth = registered(155, "fp-bright-large-tiff", names=["L4", "L5", "S1"])
+    assert list(truth["clicked"]) == ["L4", "L5", "S1"]
+    a = state.appearance
+    first = a.scores["at_clicks"]["scores"]
+    second = a.scores["at_clicks_without_shading"]["scores"]
+    assert first["bone-dark"] >= MIN_CLICKS_GC and a.scores["at_clicks"]["fits"]["bone-dark"]
+    assert first["bone-bright"] + CLEAR_CLICKS_GC <= first["bone-dark"] < first["bone-bright"] + CHECKED_CLICKS_GC
+    assert second["bone-bright"] >= second["bone-dark"] + CLEAR_CLICKS_GC  # right, clearly
+    assert (a.polarity, a.clear, a.decided_by) == ("bone-bright", False, f"image ({REFINED_AT_CLICKS_WITHOUT_SHADING})")
+    assert "the image leaned bone-dark by 0.13" in a.note
+    logic.run_stage(state, "levels")
+    assert state.identification.status != "confident"
 
 
 @pytest.mark.slow
