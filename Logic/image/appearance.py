@@ -164,9 +164,10 @@ REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # 
 REFINED_ON_MIRROR_WITHOUT_CLICKS = "refined, on the image mirrored left-right"  # no clicks, on the mirrored display
 CHECKED_REFINED_GC = 0.35   # no clicks: a clear verdict leading by less than this gets the second opinion too (the
 #                             tune half's wrong no-click verdicts led by up to 0.332)
-CHECKED_CLICKS_GC = 0.20    # with clicks: a clear verdict leading by less than this gets the second opinion too (no
-#                             wrong clear verdict at the clicks on any tune half to set it from: every large patient's
-#                             clear verdict there led by 0.111-0.176, every other taken as stored by >= 0.207)
+CHECKED_CLICKS_GC = CHECKED_REFINED_GC  # with clicks: the same (stop 36; no tune half has a wrong clear verdict
+#                             at the clicks to set it from; tried first at 0.20, above every large patient's clear
+#                             verdict on the tune halves, 0.111-0.176; the tune runs clear by 0.20-0.35 re-run at 0.35:
+#                             none changed, the second opinion agreeing on all 12)
 WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed above this scale (detector mm)
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
 REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"

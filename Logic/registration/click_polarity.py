@@ -32,7 +32,11 @@ images, L4-S1 clicked unnamed, judged on L3-L5, L1-L3 and L2-L4 at GC 0.21-0.22 
 leader's clicks fitted, where L4-S1 reaches 0.69 under the right one). Until stop 35 only a leader off the clicks
 had its neighbours judged. Not the other polarity's leader too: its neighbours can show the wrong polarity's
 best registration keeping the clicks by chance (tried: tune case 88's intensifier image, T7-T9 clicked, then
-took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer).
+took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer). Nor the
+next most plausible labelling when the leader has no neighbour left to judge (tried at stop 36 for report case
+149's large patient, whose leaders L3-L5, L2-L4 and L1-L3 were all wrong, L4-S1 never judged): report case 101's
+large patient, bone bright, then took bone dark *clearly* on L1-L3 (GC 0.51 with the clicks 3.8 mm off, within the
+landmark limit) and named it confidently wrong; tune case 102's flat panel lost its confident right answer.
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
