@@ -32,11 +32,17 @@ images, L4-S1 clicked unnamed, judged on L3-L5, L1-L3 and L2-L4 at GC 0.21-0.22 
 leader's clicks fitted, where L4-S1 reaches 0.69 under the right one). Until stop 35 only a leader off the clicks
 had its neighbours judged. Not the other polarity's leader too: its neighbours can show the wrong polarity's
 best registration keeping the clicks by chance (tried: tune case 88's intensifier image, T7-T9 clicked, then
-took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer). Nor the
-next most plausible labelling when the leader has no neighbour left to judge (tried at stop 36 for report case
-149's large patient, whose leaders L3-L5, L2-L4 and L1-L3 were all wrong, L4-S1 never judged): report case 101's
-large patient, bone bright, then took bone dark *clearly* on L1-L3 (GC 0.51 with the clicks 3.8 mm off, within the
-landmark limit) and named it confidently wrong; tune case 102's flat panel lost its confident right answer.
+took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer).
+
+When the leader has no neighbour left to judge (both judged already, or beyond the CT) and no registration of either
+polarity keeps the clicks, unnamed clicks have the next most plausible labelling judged instead, once
+(``_next_plausible``; stop 36): report case 149's large patient, L4-S1 clicked, was judged on L3-L5, L2-L4 and
+L1-L3, none keeping the clicks under either polarity, and the leader L1-L3's other neighbour lies beyond the CT, so
+L4-S1 was never registered (wrong polarity, ambiguous). Only when nothing keeps the clicks: tried first whenever
+the neighbours were exhausted, the extra labelling gave the wrong polarity a registration that keeps the clicks -
+report case 101's large patient, bone bright, took bone dark *clearly* on L1-L3 (GC 0.51 with the clicks 3.8 mm
+off, within the landmark limit; named confidently wrong before the 0.35 check bound of ``appearance_checks``), and
+tune case 102's flat panel (stated bone dark) lost its confident right answer to a bone-bright T4-T6 at GC 0.16.
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
@@ -96,7 +102,7 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
     count = len(leaders) if plan.given_index is not None else min(UNNAMED_LEADERS, len(leaders))
     registered = {polarity: [] for polarity in contexts}
     landmark_fits = {}  # a labelling's landmark fit depends on the clicks only: one for both polarities
-    neighbours_judged = False
+    widened = False  # the leaders widened once: the leader's neighbours, else the next most plausible
     while True:
         for polarity, ctx in contexts.items():
             for i in leaders[len(registered[polarity]):count]:
@@ -111,10 +117,12 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
         if count < len(leaders):
             count += 1
             continue
-        more = [] if neighbours_judged else _neighbours_of_leader(evidence, plan, leaders)
+        more = [] if widened else _neighbours_of_leader(evidence, plan, leaders)
+        if not more and not widened and not any(evidence.fits.values()):
+            more = _next_plausible(plan, leaders)
         if not more:
             return evidence
-        leaders, count, neighbours_judged = leaders + more, len(leaders) + len(more), True
+        leaders, count, widened = leaders + more, len(leaders) + len(more), True
 
 
 def _neighbours_of_leader(evidence: ClickPolarity, plan: ContestPlan, judged: list) -> list:
@@ -123,6 +131,15 @@ def _neighbours_of_leader(evidence: ClickPolarity, plan: ContestPlan, judged: li
     polarity = max(evidence.scores, key=evidence.scores.get)
     leader = max(evidence.registered[polarity], key=lambda f: f.similarity)
     return [i for i in one_level_from(plan, {leader.shift}) if i not in judged]
+
+
+def _next_plausible(plan: ContestPlan, judged: list) -> list:
+    """Unnamed clicks: the plan's index of the most plausible labelling not judged yet (``ContestPlan.first``
+    beyond the leaders), as a list of one or none (module docstring). Named clicks: none (their names and both
+    neighbours are the leaders)."""
+    if plan.given_index is not None:
+        return []
+    return [i for i in plan.first if i not in judged][:1]
 
 
 def one_level_from(plan: ContestPlan, shifts: set) -> list:
