@@ -163,11 +163,11 @@ def test_only_the_leaders_neighbours_are_judged_once_and_an_unclear_verdict_then
     assert not verdict_at_clicks(evidence.scores, evidence.fits)[2]
 
 
-def test_with_nothing_keeping_the_clicks_and_no_neighbour_left_the_next_most_plausible_labelling_is_judged(
+def test_with_neither_best_keeping_the_clicks_and_no_neighbour_left_the_next_plausible_labelling_is_judged(
         monkeypatch):
     """Report case 149 of the appearance benchmark (the second CT, L1-S1; L4-S1 clicked, unnamed), a large patient
-    stored bone bright: the three most plausible labellings (L3-L5, L2-L4, L1-L3) left the verdict unclear with no
-    registration keeping the clicks under either polarity, bone dark leading at L1-L3 (GC 0.426, 4.8 mm), whose
+    stored bone bright: the three most plausible labellings (L3-L5, L2-L4, L1-L3) left the verdict unclear, neither
+    polarity's best registration keeping the clicks, bone dark leading at L1-L3 (GC 0.426, 4.8 mm), whose
     neighbours are L2-L4 (judged) and T12-L2 (beyond the CT). Until stop 36 L4-S1 was never registered; now the
     next most plausible labelling is judged, once: L4-S1 keeps the clicks under either polarity (its measured
     numbers from the names-one-level-off run). Bone bright keeps them, behind on GC: still unclear here (the second
@@ -181,12 +181,12 @@ def test_with_nothing_keeping_the_clicks_and_no_neighbour_left_the_next_most_pla
     assert verdict_at_clicks(evidence.scores, evidence.fits) == ("bone-bright", pytest.approx(0.245 - 0.426), False)
 
 
-def test_a_registration_keeping_the_clicks_leaves_the_next_most_plausible_labelling_unjudged(monkeypatch):
+def test_a_best_registration_keeping_the_clicks_leaves_the_next_most_plausible_labelling_unjudged(monkeypatch):
     """Tune case 102's flat panel (the chest CT, T2-T4 clicked, unnamed; the file states bone dark): judged on T1-T3,
-    T2-T4 and T3-T5, bone dark leading at T2-T4 (GC 0.81) with the clicks 4.6 mm off, bone bright keeping them at
-    GC 0.03. The leader's neighbours are judged already; something keeps the clicks, so nothing more is judged
-    (judged anyway at stop 36, T4-T6 kept them bone bright at GC 0.16, and the image's verdict turned against the
-    file's stated polarity: a confident right answer lost)."""
+    T2-T4 and T3-T5, bone dark leading at T2-T4 (GC 0.81) with the clicks 4.6 mm off, bone bright's best keeping them
+    at GC 0.03. The leader's neighbours are judged already; a best registration keeps the clicks, so nothing more is
+    judged (judged anyway at stop 36, T4-T6 kept them bone bright at GC 0.16, and the image's verdict turned against
+    the file's stated polarity: a confident right answer lost)."""
     staged = {"bone-dark": {0: (0.768, 7.8), 1: (0.810, 4.6), 2: (0.584, 5.2), 3: (0.205, 2.7)},
               "bone-bright": {0: (0.032, 2.7), 1: (-0.101, 3.1), 2: (-0.055, 2.0), 3: (0.163, 3.5)}}
     evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [0, 1, 2, 3])
