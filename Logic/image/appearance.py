@@ -251,12 +251,14 @@ class Appearance:
 
     def as_second_opinion(self, first: Appearance) -> None:
         """This verdict, found on the image without its shading (``REFINED_WITHOUT_SHADING``, or
-        ``REFINED_AT_CLICKS_WITHOUT_SHADING``), used instead of ``first`` (the image as it is: unclear, leading with
-        the other polarity). Never clear (module docstring)."""
+        ``REFINED_AT_CLICKS_WITHOUT_SHADING``), used instead of ``first`` (the image as it is: unclear, or clear by
+        less than ``CHECKED_REFINED_GC`` / ``CHECKED_CLICKS_GC``, leading with the other polarity). Never clear (module
+        docstring)."""
         self.clear = False
+        leaned = f"{'clearly ' if first.clear else ''}leaned {first.polarity} by {first.clarity_gc:.3f}"
         self.note = (f"{self.polarity}, found only from the image without its shading above {WITHOUT_SHADING_MM:g} "
-                     f"mm (GC gap {self.clarity_gc:.3f} there; as it is, the image leaned {first.polarity} by "
-                     f"{first.clarity_gc:.3f}): not clear, so no level answer rests on it alone; set the "
+                     f"mm (GC gap {self.clarity_gc:.3f} there; as it is, the image {leaned}): not clear, so no "
+                     "level answer rests on it alone; set the "
                      "polarity by hand if the overlay looks inverted")
 
     def take_polarity_verdict(self, again: Appearance, evidence: str, threshold_gc: float) -> None:

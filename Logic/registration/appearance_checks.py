@@ -1,7 +1,8 @@
 """The X-ray's appearance decided against the CT: polarity, storage and orientation (the spatial stage's first step).
 
 ``AppearanceChecks.decide`` is every check, in order, on the state after the database stage; each check below
-runs only when the verdict before it left the question open and the user did not set the polarity:
+runs only when the verdict before it left the question open (for the second opinions, or settled it by a small
+lead) and the user did not set the polarity:
 
 1. the database's gradient correlation under each storage and polarity (``image.appearance.database_gc``);
 2. with clicks, the leading labellings registered under both polarities (``click_polarity``), else the spatial
@@ -167,7 +168,8 @@ class AppearanceChecks:
         stage registers on the image as stored converted with it, and only the contest's winner judged at the
         clicks too (``with_winner``) can make it clear. Otherwise the appearance stays as it was. Either way
         ``scores["at_clicks_without_shading"]`` records it. It runs before the check on the mirror
-        (``_polarity_on_mirror``), which judges the mirror without the shading too when this verdict is clear.
+        (``_polarity_on_mirror``), which judges the mirror without the shading too when this verdict is clear and
+        the polarity is then unclear (a clear first verdict this one confirms stays clear: no mirror check).
         Returns the evidence without the shading when its verdict is clear, else None."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         settled = a.clear and (a.clarity_gc >= CHECKED_CLICKS_GC or state.xray.polarity_stated)

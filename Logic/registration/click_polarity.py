@@ -35,10 +35,11 @@ best registration keeping the clicks by chance (tried: tune case 88's intensifie
 took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its confident right answer).
 
 When the leader has no neighbour left to judge (both judged already, or beyond the CT) and neither polarity's best
-registration keeps the clicks (``fits``), unnamed clicks have the next most plausible labelling judged instead, once
-(``_next_plausible``; stop 36): report case 149's large patient, L4-S1 clicked, was judged on L3-L5, L2-L4 and
-L1-L3, neither polarity's best keeping the clicks, and the leader L1-L3's other neighbour lies beyond the CT, so
-L4-S1 was never registered (wrong polarity, ambiguous). Only then: tried first whenever
+registration keeps the clicks (``fits``, whatever its GC: a fit below ``FITTED_MIN_GC`` still counts here), unnamed
+clicks have the next most plausible labelling judged instead, once (``_next_plausible``; stop 36): report case 149's
+large patient, L4-S1 clicked, was judged on L3-L5, L2-L4 and L1-L3, neither polarity's best keeping the clicks,
+and the leader L1-L3's other neighbour lies beyond the CT, so L4-S1 was never registered (wrong polarity,
+ambiguous). Only then: tried first whenever
 the neighbours were exhausted, the extra labelling gave the wrong polarity a registration that keeps the clicks -
 report case 101's large patient, bone bright, took bone dark *clearly* on L1-L3 (GC 0.51 with the clicks 3.8 mm
 off, within the landmark limit; named confidently wrong before the 0.35 check bound of ``appearance_checks``), and

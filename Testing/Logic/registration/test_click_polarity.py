@@ -192,3 +192,14 @@ def test_a_best_registration_keeping_the_clicks_leaves_the_next_most_plausible_l
     evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [0, 1, 2, 3])
     assert sorted(set(registered)) == [0, 1, 2] and len(evidence.labels) == 3
     assert evidence.fits["bone-bright"]
+
+
+def test_the_next_most_plausible_labelling_is_judged_once_and_no_further(monkeypatch):
+    """Unclear after the three most plausible labellings (shifts 4, 3, 5), nothing keeping the clicks, the leader
+    (shift 4) with both neighbours judged: the fourth most plausible (shift 8) is judged under each polarity, once;
+    still nothing keeps the clicks, and the fifth (shift 9) is never judged."""
+    staged = {"bone-dark": {4: (0.40, 6.0), 3: (0.30, 6.5), 5: (0.25, 7.0), 8: (0.35, 6.2), 9: (0.90, 1.0)},
+              "bone-bright": {4: (0.20, 6.1), 3: (0.10, 6.4), 5: (0.15, 6.9), 8: (0.30, 6.3), 9: (0.10, 1.0)}}
+    evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 5, 8, 9])
+    assert registered.count(8) == 2 and 9 not in registered and len(evidence.labels) == 4
+    assert not any(evidence.fits.values()) and not verdict_at_clicks(evidence.scores, evidence.fits)[2]
