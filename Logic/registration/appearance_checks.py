@@ -100,6 +100,13 @@ def _all_or_nothing(state: RegistrationState):
         raise
 
 
+def _settled(state: RegistrationState, checked_gc: float) -> bool:
+    """Whether the polarity verdict in use needs no second opinion without the shading: clear, and either by a lead
+    of ``checked_gc`` or more or on a file that states its polarity."""
+    a = state.appearance
+    return a.clear and (a.clarity_gc >= checked_gc or state.xray.polarity_stated)
+
+
 def _judged(winner: LabellingFit, labellings: list) -> bool:
     """Whether the contest's ``winner`` is one of the ``labellings`` (lists of level names) a check judged."""
     return list(winner.labels) in [list(lb) for lb in labellings]
@@ -172,8 +179,7 @@ class AppearanceChecks:
         the polarity is then unclear (a clear first verdict this one confirms stays clear: no mirror check).
         Returns the evidence without the shading when its verdict is clear, else None."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
-        settled = a.clear and (a.clarity_gc >= CHECKED_CLICKS_GC or state.xray.polarity_stated)
-        if cp is None or settled or p.polarity in POLARITIES or a.orientation != "as-stored":
+        if cp is None or _settled(state, CHECKED_CLICKS_GC) or p.polarity in POLARITIES or a.orientation != "as-stored":
             return None
         unshaded = self._leaders_judged_again(state, lambda ctx: unshaded_context(ctx, WITHOUT_SHADING_MM),
                                               state.xray_landmarks, "at the clicks without the image's shading")
@@ -284,8 +290,8 @@ class AppearanceChecks:
         (``_levels``); otherwise the appearance stays as it was. Either way
         ``scores["without_clicks_without_shading"]`` records it."""
         a, p = state.appearance, state.parameters
-        settled = a.clear and (a.clarity_gc >= CHECKED_REFINED_GC or state.xray.polarity_stated)
-        if state.image_polarity is None or settled or p.polarity in POLARITIES or a.orientation != "as-stored":
+        if (state.image_polarity is None or _settled(state, CHECKED_REFINED_GC) or p.polarity in POLARITIES
+                or a.orientation != "as-stored"):
             return
         unshaded = self.polarity_from_image(state, gc_by_storage, without_shading_mm=WITHOUT_SHADING_MM)
         a.scores["without_clicks_without_shading"] = unshaded.as_dict()

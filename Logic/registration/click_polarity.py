@@ -37,13 +37,13 @@ took bone bright at GC 0.12 over bone dark's 0.60 off the clicks, and lost its c
 When the leader has no neighbour left to judge (both judged already, or beyond the CT) and neither polarity's best
 registration keeps the clicks (``fits``, whatever its GC: a fit below ``FITTED_MIN_GC`` still counts here), unnamed
 clicks have the next most plausible labelling judged instead, once (``_next_plausible``; stop 36): report case 149's
-large patient, L4-S1 clicked, was judged on L3-L5, L2-L4 and L1-L3, neither polarity's best keeping the clicks,
-and the leader L1-L3's other neighbour lies beyond the CT, so L4-S1 was never registered (wrong polarity,
-ambiguous). Only then: tried first whenever
-the neighbours were exhausted, the extra labelling gave the wrong polarity a registration that keeps the clicks -
-report case 101's large patient, bone bright, took bone dark *clearly* on L1-L3 (GC 0.51 with the clicks 3.8 mm
-off, within the landmark limit; named confidently wrong before the 0.35 check bound of ``appearance_checks``), and
-tune case 102's flat panel (stated bone dark) lost its confident right answer to a bone-bright T4-T6 at GC 0.16.
+large patient, L4-S1 clicked, was judged on L3-L5, L2-L4 and L1-L3, neither polarity's best keeping the clicks, and
+the leader L1-L3's other neighbour lies beyond the CT, so L4-S1 was never registered (wrong polarity, ambiguous).
+Only then: tried first whenever the neighbours were exhausted, the extra labelling gave the wrong polarity a
+registration that keeps the clicks - report case 101's large patient, bone bright, took bone dark *clearly* on L1-L3
+(GC 0.51 with the clicks 3.8 mm off, within the landmark limit; named confidently wrong before the 0.35 check bound
+of ``appearance_checks``), and tune case 102's flat panel (stated bone dark) lost its confident right answer to a
+bone-bright T4-T6 at GC 0.16.
 
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
@@ -135,11 +135,8 @@ def _neighbours_of_leader(evidence: ClickPolarity, plan: ContestPlan, judged: li
 
 
 def _next_plausible(plan: ContestPlan, judged: list) -> list:
-    """Unnamed clicks: the plan's index of the most plausible labelling not judged yet (``ContestPlan.first``
-    beyond the leaders), as a list of one or none (module docstring). Named clicks: none (their names and both
-    neighbours are the leaders)."""
-    if plan.given_index is not None:
-        return []
+    """The plan's index of the most plausible labelling not judged yet (``ContestPlan.first`` beyond the leaders),
+    as a list of one or none (module docstring). Named clicks have none left: their leaders are all of ``first``."""
     return [i for i in plan.first if i not in judged][:1]
 
 
