@@ -54,7 +54,8 @@ def _geometry_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sod-mm", type=float, help="source-to-isocentre (patient) distance, mm")
     g.add_argument("--distortion-mm", type=float, metavar="MM",
                    help="image-intensifier pincushion from the C-arm's calibration: how far (mm) an image point "
-                   "100 mm from the centre lies outward of a pinhole camera's; default 0 (none, a flat panel)")
+                   "100 mm from the centre lies outward of a pinhole camera's; default: estimated from the image "
+                   "when the exposed field is round (an intensifier's), else 0; 0 says none (a pinhole camera)")
     g.add_argument("--frame", type=int, help="frame of a multi-frame X-ray (0-based)")
 
 
@@ -315,7 +316,8 @@ def cmd_demo(args) -> int:
         truth = json.loads(case["ground_truth"].read_text())
         centroids = read_landmarks_3d(case["ct_landmarks"]).as_dict()
         fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
-        score = evaluate(result.projection_matrix, centroids, truth, fitted)
+        score = evaluate(result.projection_matrix, centroids, truth, fitted,
+                         shown=result.geometry.intrinsics.distortion.distort)
         true_clicked = read_landmarks_2d(case["xray_landmarks"]).labels
         assigned = result.level_check.assigned_labels if result.level_check else None
         if args.clicks == "unnamed" and assigned is not None:

@@ -78,7 +78,8 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.distortion = _spin(-MAX_DISTORTION_MM, MAX_DISTORTION_MM, 2, " mm")
         self.distortion.setToolTip("An image intensifier's pincushion, from the C-arm's distortion calibration: how "
                                    "far an image point 100 mm from the centre lies outward of where a distortion-"
-                                   "free camera would show it. 0 for a flat panel or an image already corrected.")
+                                   "free camera would show it. 0: none given; on a round field (an intensifier's) "
+                                   "the registration then estimates it from the image and says so.")
         self.sources: dict[str, QtWidgets.QLabel] = {}
         rows = [("sdd_mm", "Source-detector (SDD)", [self.sdd]),
                 ("pixel_spacing_mm", "Pixel spacing col, row", [self.du, self.dv]),

@@ -18,6 +18,7 @@ from carmreg.logic.registration.depth import tx_limits
 from carmreg.logic.registration.levels import (
     LevelIdentification,
 )
+from carmreg.logic.registration.pincushion import FROM_IMAGE
 from carmreg.logic.registration.state import RegistrationResult, RegistrationState
 
 
@@ -59,9 +60,19 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         level_check=check,
         appearance=state.appearance, field_mask=state.mask,
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
-                "xray_landmarks": state.xray_landmarks.source, "geometry_sources": dict(state.xray.sources),
+                "xray_landmarks": state.xray_landmarks.source, "geometry_sources": geometry_sources(state),
                 "xray_frame": state.xray.meta.get("frame"),
                 "xray_frames_in_file": state.xray.meta.get("n_frames")})
+
+
+def geometry_sources(state: RegistrationState) -> dict:
+    """Where each geometry value came from (the X-ray's reader), the pincushion from the refine stage's estimate
+    when it ran (``pincushion``)."""
+    sources = dict(state.xray.sources)
+    if state.pincushion is not None:
+        sources["distortion_mm"] = (state.geometry.intrinsics.sources["distortion_mm"] if state.pincushion.shift_mm
+                                    else f"{FROM_IMAGE}: none found")
+    return sources
 
 
 def level_check(state: RegistrationState):

@@ -20,7 +20,8 @@ Stages (each a plain function in its own module, returning a small result):
               (``intensity_refine``), a wide coarse pass (4 mm; reused from the levels stage, which ran the
               same computation for the chosen labelling) then a local one (3 mm); it fixes the out-of-plane
               rotations and the magnification that three nearly collinear clicks cannot; its pose is kept only
-              if the clicks still agree with it;
+              if the clicks still agree with it. On a round field without a distortion calibration the local pass
+              also estimates the intensifier's pincushion (``pincushion``: the pass at fixed shifts, the best kept);
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector (``final_drr_detector``).
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
@@ -55,6 +56,7 @@ from carmreg.logic.registration.labelling_fit import state_context, unshaded_con
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import IdentifyParameters, identify_from_image, identify_levels
 from carmreg.logic.registration.outcome import build_result
+from carmreg.logic.registration.pincushion import PincushionEstimate, estimate_pincushion, with_shift
 from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 from carmreg.logic.registration.spatial import spatial_search
@@ -104,6 +106,36 @@ def ideal_clicks(clicks: Landmarks2D, intr: CarmIntrinsics) -> Landmarks2D:
     return dataclasses.replace(clicks, uv_px=intr.distortion.undistort(clicks.uv_px))
 
 
+def pincushion_unknown(state: RegistrationState) -> bool:
+    """Whether the refine stage estimates the X-ray's pincushion from the image (``pincushion``): asked
+    (``estimate_pincushion``), a round field (an image intensifier's) and no distortion given, not even 0
+    (``--distortion-mm 0`` says a pinhole camera: its source is then recorded; none recorded is none given)."""
+    intr = state.geometry.intrinsics
+    return bool(state.parameters.estimate_pincushion and state.round_field and not intr.distortion_mm
+                and intr.sources.get("distortion_mm", "default").startswith("default"))
+
+
+def take_pincushion(state: RegistrationState, estimate: PincushionEstimate) -> None:
+    """The detector from now on has the estimated pincushion (``estimate.shift_mm``; 0: the pinhole kept): the
+    geometry, the pairs' clicks taken to their ideal points (``ideal_clicks``) and the warning on the round field
+    replaced by the estimate. ``state.pinhole`` keeps what they were (``drop_results_from`` restores them)."""
+    state.pincushion = estimate
+    state.pinhole = (state.geometry, state.pairs, list(state.warnings))
+    shift = estimate.shift_mm
+    note = (f"the X-ray's field is round, as an image intensifier's, and no distortion calibration was given: its "
+            f"pincushion was estimated from the image, {shift:.1f} mm at 100 mm from the centre (a calibration, "
+            "--distortion-mm, is more exact; --distortion-mm 0 keeps a pinhole camera)" if shift else
+            "the X-ray's field is round, as an image intensifier's, and no distortion calibration was given: no "
+            "pincushion was found on the image (a calibration, --distortion-mm, is more exact)")
+    state.warnings[:] = [note if w == UNCORRECTED_INTENSIFIER else w for w in state.warnings]
+    if not shift:
+        return
+    state.geometry = with_shift(state.geometry, shift)
+    if state.pairs is not None:
+        state.pairs = dataclasses.replace(state.pairs,
+                                          uv_px=state.geometry.intrinsics.distortion.undistort(state.pairs.uv_px))
+
+
 class CarmRegLogic:
     """Headless logic class: ``register(...)`` or ``prepare(...)`` then ``run_stage(state, name)``."""
 
@@ -146,7 +178,8 @@ class CarmRegLogic:
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
-        if not intrinsics.distortion_mm and round_field(mask):
+        round_ = round_field(mask)
+        if not intrinsics.distortion_mm and round_:
             notes = [*notes, UNCORRECTED_INTENSIFIER]
         appearance = initial_appearance(xray, params)
         line_integral = attenuation(xray.pixels, mask, appearance.bone_dark, appearance.storage)
@@ -154,7 +187,7 @@ class CarmRegLogic:
         pyramid = MuPyramid(ct, cache=ArrayCache(params.cache_dir) if params.cache_dir else None)
         return RegistrationState(ct, ct_landmarks, xray, xray_landmarks, params, geometry, pairs, pyramid,
                                  line_integral, mask, factor, given_pairs=pairs, warnings=notes,
-                                 appearance=appearance)
+                                 appearance=appearance, round_field=round_)
 
     def register(self, ct: Volume, ct_landmarks: Landmarks3D, xray: XrayImage, xray_landmarks: Landmarks2D,
                  parameters: RegistrationParameters | None = None) -> RegistrationResult:
@@ -337,9 +370,20 @@ class CarmRegLogic:
         points, uv = (state.pairs.points_lps_mm, state.pairs.uv_px) if state.pairs is not None \
             else (np.zeros((0, 3)), np.zeros((0, 2)))
         coarse_pose, reused = self._coarse_refined_pose(state, points, uv)
-        self._report("refine", 0.5, "local image refinement")
-        r = intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), state.geometry, coarse_pose,
-                             state.xray_line_integral, state.mask, points, uv, p.refine, should_stop=self._check_cancel)
+        extra = {}
+        if pincushion_unknown(state):
+            def progress(done: int, total: int) -> None:
+                self._report("refine", 0.5 + 0.4 * done / total,
+                             f"estimating the image intensifier's pincushion ({done + 1} of up to {total})")
+
+            estimate = estimate_pincushion(lambda shift: self._local_refine(state, coarse_pose, shift),
+                                           progress=progress)
+            r = estimate.refine
+            take_pincushion(state, estimate)
+            extra["pincushion"] = estimate.as_dict()
+        else:
+            self._report("refine", 0.5, "local image refinement")
+            r = self._local_refine(state, coarse_pose)
         state.refine = r
         accepted = state.pairs is None or r.mpde_mm <= p.refine_max_mpde_mm
         if accepted:
@@ -349,7 +393,21 @@ class CarmRegLogic:
                                   "clicks; kept the landmark pose (check the clicks and the level names)")
         return {"enabled": True, "accepted": accepted, "coarse_reused_from_levels": reused,
                 "evaluations": r.evaluations, "similarity_start": r.similarity_start,
-                "similarity_end": r.similarity_end, "refined_mpde_mm": r.mpde_mm}
+                "similarity_end": r.similarity_end, "refined_mpde_mm": r.mpde_mm, **extra}
+
+    def _local_refine(self, state: RegistrationState, start_pose: np.ndarray, shift_mm: float | None = None):
+        """The local image refinement (``intensity_refine``, ``parameters.refine``) from ``start_pose``; with
+        ``shift_mm``, on the detector given that pincushion (``pincushion.with_shift``), the clicks taken to their
+        ideal points through it."""
+        p, pairs = state.parameters, state.pairs
+        points, uv = (pairs.points_lps_mm, pairs.uv_px) if pairs is not None else (np.zeros((0, 3)), np.zeros((0, 2)))
+        geometry = state.geometry
+        if shift_mm is not None:  # the pairs' clicks are as shown (``pincushion_unknown``: no distortion given)
+            geometry = with_shift(state.geometry, shift_mm)
+            uv = geometry.intrinsics.distortion.undistort(uv)
+        return intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), geometry, start_pose,
+                                state.xray_line_integral, state.mask, points, uv, p.refine,
+                                should_stop=self._check_cancel)
 
     def _coarse_refined_pose(self, state: RegistrationState, points: np.ndarray, uv: np.ndarray
                              ) -> tuple[np.ndarray, bool]:

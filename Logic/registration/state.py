@@ -31,6 +31,7 @@ from carmreg.logic.registration.levels import (
     IdentifyParameters,
     LevelIdentification,
 )
+from carmreg.logic.registration.pincushion import PincushionEstimate
 from carmreg.logic.registration.spatial import SpatialResult
 
 STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
@@ -52,6 +53,8 @@ class RegistrationParameters:
     refine_coarse: RefineParameters = field(default_factory=coarse_refine_parameters)
     refine: RefineParameters = field(default_factory=RefineParameters)
     refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
+    estimate_pincushion: bool = True        # a round field without a distortion calibration: its pincushion
+    #                                         estimated from the image by the refine stage (``pincushion``)
     level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels
     identify: IdentifyParameters = field(default_factory=IdentifyParameters)
     final_drr_max_px: int = 1024            # final DRR detector size cap (longest side)
@@ -101,6 +104,9 @@ class RegistrationState:
     image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
     turned_fits: dict = field(default_factory=dict)  # the orientation check's registrations, per (polarity, storage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
+    round_field: bool = False               # the exposed field is a disc (an image intensifier's: ``field``)
+    pincushion: PincushionEstimate | None = None  # the refine stage's estimate (``pincushion``), when it ran
+    pinhole: tuple | None = None            # (geometry, pairs, warnings) before that estimate took over
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -154,8 +160,11 @@ class RegistrationResult:
 def drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
+    if "refine" in later and state.pinhole is not None:  # the detector as prepared, before the estimated pincushion
+        state.geometry, state.pairs, state.warnings[:] = state.pinhole
+        state.pinhole = None
     fields = {"database": ("database",), "spatial": ("spatial", "click_polarity", "image_polarity"),
-              "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose"),
+              "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose", "pincushion"),
               "levels": ("identification",), "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:

@@ -8,9 +8,9 @@ Files (written into ``out_dir`` as one transaction, see ``carmreg.logic.io.trans
   ``level_identify``);
   ``projection_matrix`` (3x4, LPS mm -> homogeneous (column, row) px);
   ``pose`` (the 6 C-arm parameters, mm and degrees, about the nominal AP pose described in ``geometry``);
-  ``geometry`` (intrinsics, isocentre, SOD, the radial distortion ``distortion_mm`` given (0 = none; levels and
-  clicks are then where the X-ray shows them, ``projection_matrix`` the pinhole before it), where each value came
-  from); per-stage mPDE (detector mm), seconds
+  ``geometry`` (intrinsics, isocentre, SOD, the radial distortion ``distortion_mm`` given or estimated (0 = none;
+  levels and clicks are then where the X-ray shows them, ``projection_matrix`` the pinhole before it), where each
+  value came from); per-stage mPDE (detector mm), seconds
   and choices; ``levels`` (every CT-labelled level's projected ``uv_px``, fitted or not, PDE when clicked);
   ``parameters``; ``reproducibility`` (versions, seed).
 - ``overlay.png``: the overlay as the window shows it by default and the report page prints it

@@ -47,6 +47,7 @@ from bench_registration import load_case  # noqa: E402
 from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load_second_ct  # noqa: E402
 
 from carmreg.logic.geometry.camera import project  # noqa: E402
+from carmreg.logic.geometry.distortion import RadialDistortion  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from carmreg.logic.registration.labellings import shifted_labels  # noqa: E402
 from carmreg.logic.resources import sample_case  # noqa: E402
@@ -208,6 +209,15 @@ def level_offset(P: np.ndarray, centroids: dict, truth: dict) -> int | None:
     return int(values[np.argmax(counts)])
 
 
+def drawn_through(geometry: dict):
+    """Where the result draws a projected point (``RadialDistortion.distort`` of its detector: the pincushion
+    given or estimated, result.json ``geometry``); None on a pinhole (or a record without one)."""
+    if not geometry.get("distortion_mm"):
+        return None
+    return RadialDistortion.from_shift(geometry["distortion_mm"], geometry["principal_point_px"],
+                                       geometry["pixel_spacing_mm"]).distort
+
+
 def score(mode: str, code: int, result: dict | None, truth: dict, given: list, centroids: dict) -> dict:
     """The run's answer against the truth (module docstring)."""
     row: dict = {"exit": code}
@@ -223,7 +233,7 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
     row["db_from_cache"] = stages.get("database", {}).get("from_cache")
     P = np.asarray(result["projection_matrix"], float)
     clicked = set(truth["clicked"]) if mode != "none" else set()
-    ev = evaluate(P, centroids, truth, clicked)
+    ev = evaluate(P, centroids, truth, clicked, shown=drawn_through(result["geometry"]))
     shown = evaluate(np.asarray(truth["projection_matrix"], float), centroids, truth, clicked)
     row.update(unfitted_pde_mm=ev["unfitted_pde_pose_mm"], unfitted_image_mm=ev["unfitted_pde_image_mm"],
                unfitted_true_pose_image_mm=shown["unfitted_pde_image_mm"],

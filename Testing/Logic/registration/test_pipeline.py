@@ -14,8 +14,10 @@ import pytest
 from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import CancelledError
 from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose, project
+from carmreg.logic.geometry.distortion import RadialDistortion
 from carmreg.logic.geometry.volume import MuPyramid
 from carmreg.logic.io.xray import XrayImage, load_xray
+from carmreg.logic.registration.pincushion import FROM_IMAGE
 from carmreg.logic.registration.pipeline import (
     STAGES,
     UNCORRECTED_INTENSIFIER,
@@ -154,9 +156,12 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     doc = json.loads(paths["result"].read_text())
     P = np.array(doc["projection_matrix"])
     assert P.shape == (3, 4)
-    for level in doc["levels"]:  # P maps each CT centroid onto its reported uv_px
+    g = doc["geometry"]  # its round field has no calibration: the pincushion is estimated (``pincushion``)
+    assert g["distortion_mm"] > 0 and g["sources"]["distortion_mm"] == FROM_IMAGE
+    warp = RadialDistortion.from_shift(g["distortion_mm"], g["principal_point_px"], g["pixel_spacing_mm"])
+    for level in doc["levels"]:  # P maps each CT centroid onto its reported uv_px, through the pincushion
         x = np.append(centroids.as_dict()[level["label"]], 1.0)
-        uv = (P @ x)[:2] / (P @ x)[2]
+        uv = warp.distort((P @ x)[:2] / (P @ x)[2])
         assert np.allclose(uv, level["uv_px"], atol=1e-6)
     assert {s["name"] for s in doc["stages"]} == set(STAGES)
     assert doc["reproducibility"]["seed"] == result.parameters.fine.seed
