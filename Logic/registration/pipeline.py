@@ -370,7 +370,7 @@ class CarmRegLogic:
         points, uv = (state.pairs.points_lps_mm, state.pairs.uv_px) if state.pairs is not None \
             else (np.zeros((0, 3)), np.zeros((0, 2)))
         coarse_pose, reused = self._coarse_refined_pose(state, points, uv)
-        extra = {}
+        extra, estimate = {}, None
         if pincushion_unknown(state):
             def progress(done: int, total: int) -> None:
                 self._report("refine", 0.5 + 0.4 * done / total,
@@ -379,7 +379,6 @@ class CarmRegLogic:
             estimate = estimate_pincushion(lambda shift: self._local_refine(state, coarse_pose, shift),
                                            progress=progress)
             r = estimate.refine
-            take_pincushion(state, estimate)
             extra["pincushion"] = estimate.as_dict()
         else:
             self._report("refine", 0.5, "local image refinement")
@@ -388,7 +387,9 @@ class CarmRegLogic:
         accepted = state.pairs is None or r.mpde_mm <= p.refine_max_mpde_mm
         if accepted:
             state.refined_pose = r.pose
-        else:
+            if estimate is not None:  # the pose found with it: the detector has it from now on
+                take_pincushion(state, estimate)
+        else:  # the landmark pose, found on the detector as prepared, is kept with it
             state.warnings.append(f"the image refinement moved the clicked levels {r.mpde_mm:.1f} mm from the "
                                   "clicks; kept the landmark pose (check the clicks and the level names)")
         return {"enabled": True, "accepted": accepted, "coarse_reused_from_levels": reused,

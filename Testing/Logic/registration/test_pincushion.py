@@ -75,7 +75,8 @@ def test_an_uncalibrated_intensifier_gets_its_pincushion_from_the_image(sample_c
     the profile is flat, 0.519-0.529), yet the levels not clicked land 2.35 mm at most from the true pose, against
     3.44 mm with the pinhole camera (1.5 mm with the calibration: ``test_pipeline``). The result draws the levels
     through the estimate and gives the clicks where they were clicked; the round field's warning becomes the
-    estimate's note. Re-running the refine stage starts again from the detector as prepared."""
+    estimate's note. Re-running the refine stage starts again from the detector as prepared; a refined pose the
+    clicks refuse leaves the detector as prepared."""
     ct, _, centroids = sample_ct
     sim, xray = intensifier
     params = RegistrationParameters(cache_dir=str(tmp_path))
@@ -102,6 +103,10 @@ def test_an_uncalibrated_intensifier_gets_its_pincushion_from_the_image(sample_c
     drop_results_from(state, "refine")
     assert state.geometry is pinhole and UNCORRECTED_INTENSIFIER in state.warnings
     np.testing.assert_allclose(state.pairs.uv_px, sim.clicks.uv_px)
+    state.parameters.refine_max_mpde_mm = 0.0  # a refinement the clicks refuse: its pincushion goes with it
+    logic.run_stage(state, "refine")
+    assert state.refined_pose is None and state.pincushion is None and state.geometry is pinhole
+    assert "pincushion" in state.stages[-1].extra and UNCORRECTED_INTENSIFIER in state.warnings
 
 
 def test_only_a_round_field_without_a_distortion_given_is_estimated(sample_ct, intensifier, tmp_path):
