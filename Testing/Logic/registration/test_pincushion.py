@@ -5,6 +5,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from simulated_cases import intensifier_case
 
 from carmreg.logic.geometry.camera import project
 from carmreg.logic.io.xray import XrayImage
@@ -18,9 +19,6 @@ from carmreg.logic.registration.pipeline import (
 )
 from carmreg.logic.registration.state import STAGES, drop_results_from
 from carmreg.logic.simulation.evaluation import evaluate
-from carmreg.logic.simulation.options import SimulationOptions, default_geometry, sample_options
-from carmreg.logic.simulation.scene import random_pose
-from carmreg.logic.simulation.simulator import simulate_case
 
 
 def _refine_with(objective):
@@ -55,16 +53,9 @@ def test_the_profile_keeps_the_refinement_with_the_lowest_objective():
 
 @pytest.fixture(scope="module")
 def intensifier(sample_ct):
-    """stop 23's calibrated case (test_pipeline): 8 mm of pincushion at the rim, no S-distortion; its X-ray with no
-    distortion given (a pinhole as far as the reader knows)."""
-    ct, labels, centroids = sample_ct
-    rng = np.random.default_rng(502)
-    options = dataclasses.replace(sample_options(rng, SimulationOptions(size_px=(384, 384), pixel_spacing_mm=0.6)),
-                                  pincushion_edge_mm=8.0, s_distortion_edge_mm=0.0)
-    geometry = default_geometry(ct, options)
-    inner = centroids.sorted().labels[3:-2]
-    pose = random_pose(rng, options, centroids, inner[int(rng.integers(len(inner)))], geometry=geometry)
-    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=2)
+    """stop 23's calibrated case (``simulated_cases.intensifier_case``) with no distortion given (a pinhole as far as
+    the reader knows)."""
+    sim, geometry = intensifier_case(sample_ct)
     intr = dataclasses.replace(geometry.intrinsics, sources={"distortion_mm": "default (none)"})
     return sim, XrayImage(sim.pixels.astype(np.float32), intr, geometry.sod_mm, True, "sim-2")
 

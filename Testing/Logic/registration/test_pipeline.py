@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+from simulated_cases import intensifier_case
 
 from carmreg.logic.drr.cpu import render_line_integrals
 from carmreg.logic.errors import CancelledError
@@ -77,14 +78,8 @@ def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose
     (``distortion_mm`` = the simulator's k 100^3): the levels not clicked land within 1.5 mm of the true pose's
     projections (this case with a pinhole camera: 3.4 mm), and the result gives levels and clicks where the X-ray
     shows them."""
-    ct, labels, centroids = sample
-    rng = np.random.default_rng(502)
-    options = dataclasses.replace(sample_options(rng, SimulationOptions(size_px=(384, 384), pixel_spacing_mm=0.6)),
-                                  pincushion_edge_mm=8.0, s_distortion_edge_mm=0.0)
-    geometry = default_geometry(ct, options)
-    inner = centroids.sorted().labels[3:-2]
-    pose = random_pose(rng, options, centroids, inner[int(rng.integers(len(inner)))], geometry=geometry)
-    sim = simulate_case(ct, labels, centroids, geometry, pose, options, seed=2)
+    ct, _, centroids = sample
+    sim, geometry = intensifier_case(sample)
     intr = dataclasses.replace(geometry.intrinsics, distortion_mm=sim.distortion.k_per_mm2 * 100.0**3)
     xray = XrayImage(sim.pixels.astype(np.float32), intr, geometry.sod_mm, True, "sim-2")
     result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
