@@ -251,6 +251,11 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
         ui.checkLevels.connect("toggled(bool)", self.updateParameterNodeFromGUI)
         form.addRow(ui.checkLevels)
+        ui.estimatePincushion = qt.QCheckBox("Estimate an intensifier's pincushion from the image")
+        ui.estimatePincushion.toolTip = ("On a round field with no Pincushion given, the image refinement estimates "
+                                         "it; unchecked: a pinhole camera (a flat panel, an image already corrected)")
+        ui.estimatePincushion.connect("toggled(bool)", self.updateParameterNodeFromGUI)
+        form.addRow(ui.estimatePincushion)
         ui.apply = qt.QPushButton("Register")
         ui.cancel = qt.QPushButton("Cancel")
         ui.progress = qt.QProgressBar()
@@ -306,6 +311,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.distortion.value = float(node.GetParameter("DistortionMm") or 0)
             self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
+            self.ui.estimatePincushion.checked = node.GetParameter("EstimatePincushion") != "false"
             ready = all(node.GetNodeReference(r) for r in ("CT", "CTPoints", "Xray"))
             self.ui.apply.enabled = ready
             self.ui.apply.toolTip = "Register the CT to the X-ray" if ready else "Select CT, CT centroids and X-ray"
@@ -325,6 +331,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         node.SetParameter("DistortionMm", f"{self.ui.distortion.value:g}")
         node.SetParameter("Metric", self.ui.metric.currentText)
         node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")
+        node.SetParameter("EstimatePincushion", "true" if self.ui.estimatePincushion.checked else "false")
         node.EndModify(was_modified)
 
     def enter(self):

@@ -25,8 +25,9 @@ NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiduci
               "GridXray": "vtkMRMLScalarVolumeNode"}
 OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
 DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "DistortionMm": "0", "Metric": "gc",
-                      "CheckLevels": "true"}
-"""0 = take the value from the X-ray file (DICOM tags) or CarmReg's default."""
+                      "CheckLevels": "true", "EstimatePincushion": "true"}
+"""0 = take the value from the X-ray file (DICOM tags) or CarmReg's default; EstimatePincushion: a round field
+with no DistortionMm given gets its pincushion estimated from the image (``registration.pincushion``)."""
 
 
 def matrix_to_numpy(vtk_matrix):
@@ -261,7 +262,9 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
     ct_landmarks = ct_points_from_node(nodes["CTPoints"])
     xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm, distortion_mm)
     clicks = xray_points_from_node(nodes["XrayPoints"], nodes["Xray"]) if nodes["XrayPoints"] else None
-    params = pipeline.RegistrationParameters(metric=metric, level_check=check_levels, cache_dir=cache_dir)
+    params = pipeline.RegistrationParameters(
+        metric=metric, level_check=check_levels, cache_dir=cache_dir,
+        estimate_pincushion=parameter_node.GetParameter("EstimatePincushion") != "false")
     result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)
     return result, ct, ct_landmarks, xray
 

@@ -148,6 +148,13 @@ class RegistrationPanel(QtWidgets.QWidget):
                                        "and says how clearly (Check step); set it only to override")
         form.addRow("X-ray polarity", self.polarity_combo)
         self.polarity_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        self.pincushion_check = QtWidgets.QCheckBox("Estimate an intensifier's pincushion from the image")
+        self.pincushion_check.setChecked(True)
+        self.pincushion_check.setToolTip("On a round field (an image intensifier's) with no Pincushion given (C-arm "
+                                         "geometry), the image refinement estimates it and says how much; unchecked: "
+                                         "a pinhole camera, as for a flat panel or an image already corrected")
+        form.addRow("", self.pincushion_check)
+        self.pincushion_check.toggled.connect(lambda _on: self._done and self.reset_requested.emit())
         self.cache_check = QtWidgets.QCheckBox("Reuse the DRR database cache")
         self.cache_check.setChecked(True)
         form.addRow("", self.cache_check)
@@ -202,7 +209,13 @@ class RegistrationPanel(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
         return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
-                "polarity": self.polarity_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked()}
+                "polarity": self.polarity_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked(),
+                "estimate_pincushion": self.pincushion_check.isChecked()}
+
+    def set_estimate_pincushion(self, on) -> None:
+        """Whether an uncalibrated intensifier's pincushion is estimated (a session's choice; anything but False:
+        yes)."""
+        self.pincushion_check.setChecked(on is not False)
 
     def set_metric(self, key: str) -> None:
         """Choose the metric by its key (``gc``, ``ncc``, ...)."""
@@ -264,6 +277,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.cancel_button.setEnabled(running)
         self.metric_combo.setEnabled(not running)
         self.polarity_combo.setEnabled(not running)
+        self.pincushion_check.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 
     def set_progress(self, stage: str, fraction: float, message: str) -> None:

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from carmreg.logic.errors import GeometryError
-from carmreg.logic.geometry.distortion import RadialDistortion
+from carmreg.logic.geometry.distortion import REFERENCE_RADIUS_MM, RadialDistortion
 
 # Rotation of the nominal AP camera: rows are camera x, y, z axes expressed in LPS.
 NOMINAL_LPS_TO_CAMERA_ROTATION = np.array([[1.0, 0.0, 0.0],   # camera x = patient Left
@@ -121,12 +121,17 @@ class CarmIntrinsics:
         """An intensifier's pincushion moves its rim by a few per cent; the model (``geometry.distortion``) holds
         while k r^2 stays small over the detector (r to its farthest corner)."""
         shift = self.distortion_mm
-        reach_mm = float(np.hypot(*(np.asarray(self.size_px) * np.asarray(self.pixel_spacing_mm)))) / 2.0
-        if not (np.isfinite(shift) and abs(shift) <= MAX_DISTORTION_MM
-                and abs(self.distortion.k_per_mm2) * reach_mm**2 <= MAX_DISTORTION_FRACTION):
+        if not (np.isfinite(shift) and abs(shift) <= self.max_distortion_mm):
             raise GeometryError(f"distortion {shift:g} mm at 100 mm from the centre is not plausible: give "
                                 "--distortion-mm from the C-arm's calibration (an image intensifier's is a few mm; "
                                 f"at most {MAX_DISTORTION_MM:g}, less on a detector this large), or 0")
+
+    @property
+    def max_distortion_mm(self) -> float:
+        """The largest ``distortion_mm`` this detector accepts: ``MAX_DISTORTION_MM``, and k r^2 at most
+        ``MAX_DISTORTION_FRACTION`` with r (mm) to its farthest corner (k = shift / 100^3)."""
+        reach_mm = float(np.hypot(*(np.asarray(self.size_px) * np.asarray(self.pixel_spacing_mm)))) / 2.0
+        return min(MAX_DISTORTION_MM, MAX_DISTORTION_FRACTION * REFERENCE_RADIUS_MM**3 / reach_mm**2)
 
     @property
     def distortion(self) -> RadialDistortion:

@@ -18,7 +18,6 @@ from carmreg.logic.registration.depth import tx_limits
 from carmreg.logic.registration.levels import (
     LevelIdentification,
 )
-from carmreg.logic.registration.pincushion import FROM_IMAGE
 from carmreg.logic.registration.state import RegistrationResult, RegistrationState
 
 
@@ -70,8 +69,7 @@ def geometry_sources(state: RegistrationState) -> dict:
     when it ran (``pincushion``)."""
     sources = dict(state.xray.sources)
     if state.pincushion is not None:
-        sources["distortion_mm"] = (state.geometry.intrinsics.sources["distortion_mm"] if state.pincushion.shift_mm
-                                    else f"{FROM_IMAGE}: none found")
+        sources["distortion_mm"] = state.geometry.intrinsics.sources["distortion_mm"]
     return sources
 
 

@@ -56,7 +56,13 @@ from carmreg.logic.registration.labelling_fit import state_context, unshaded_con
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import IdentifyParameters, identify_from_image, identify_levels
 from carmreg.logic.registration.outcome import build_result
-from carmreg.logic.registration.pincushion import PincushionEstimate, estimate_pincushion, with_shift
+from carmreg.logic.registration.pincushion import (
+    UNCORRECTED_INTENSIFIER,
+    PincushionEstimate,
+    estimate_pincushion,
+    grid_for,
+    with_shift,
+)
 from carmreg.logic.registration.preflight import MIN_CLICKS, check_landmarks, given_pairs, preflight
 from carmreg.logic.registration.sanity import check_ct_content, check_xray_content
 from carmreg.logic.registration.spatial import spatial_search
@@ -71,11 +77,6 @@ from carmreg.logic.registration.state import (
     initial_appearance,
 )
 from carmreg.logic.similarity.metrics import METRICS
-
-UNCORRECTED_INTENSIFIER = ("the X-ray's field is round, as an image intensifier's, and no distortion calibration was "
-                           "given (--distortion-mm; in the window: C-arm geometry, Pincushion): its pincushion is not "
-                           "corrected, so levels far from the clicks (or, without clicks, from the image centre) may "
-                           "lie 1-2 mm further off than on a flat panel")
 
 __all__ = ["MIN_CLICKS", "STAGES", "CarmRegLogic", "RegistrationParameters", "RegistrationResult", "StageResult"]
 
@@ -106,30 +107,28 @@ def ideal_clicks(clicks: Landmarks2D, intr: CarmIntrinsics) -> Landmarks2D:
     return dataclasses.replace(clicks, uv_px=intr.distortion.undistort(clicks.uv_px))
 
 
+def distortion_given(intr: CarmIntrinsics) -> bool:
+    """Whether the detector's distortion was given (a calibration, or 0 for a pinhole camera: ``--distortion-mm``),
+    not left at the reader's default (its source then says "default"; none recorded is none given)."""
+    return bool(intr.distortion_mm) or not intr.sources.get("distortion_mm", "default").startswith("default")
+
+
 def pincushion_unknown(state: RegistrationState) -> bool:
     """Whether the refine stage estimates the X-ray's pincushion from the image (``pincushion``): asked
-    (``estimate_pincushion``), a round field (an image intensifier's) and no distortion given, not even 0
-    (``--distortion-mm 0`` says a pinhole camera: its source is then recorded; none recorded is none given)."""
-    intr = state.geometry.intrinsics
-    return bool(state.parameters.estimate_pincushion and state.round_field and not intr.distortion_mm
-                and intr.sources.get("distortion_mm", "default").startswith("default"))
+    (``estimate_pincushion``), a round field (an image intensifier's) and no distortion given."""
+    return bool(state.parameters.estimate_pincushion and state.round_field
+                and not distortion_given(state.geometry.intrinsics))
 
 
 def take_pincushion(state: RegistrationState, estimate: PincushionEstimate) -> None:
-    """The detector from now on has the estimated pincushion (``estimate.shift_mm``; 0: the pinhole kept): the
-    geometry, the pairs' clicks taken to their ideal points (``ideal_clicks``) and the warning on the round field
-    replaced by the estimate. ``state.pinhole`` keeps what they were (``drop_results_from`` restores them)."""
+    """The detector from now on has the estimated pincushion (``estimate.shift_mm``; 0: none found, the pinhole
+    kept): the geometry (its source ``pincushion.FROM_IMAGE``), the pairs' clicks taken to their ideal points
+    (``ideal_clicks``) and the warning on the round field replaced by the estimate's note. ``state.pinhole`` keeps
+    what they were (``drop_results_from`` restores them)."""
+    shift, note = estimate.shift_mm, estimate.note()
     state.pincushion = estimate
-    state.pinhole = (state.geometry, state.pairs, list(state.warnings))
-    shift = estimate.shift_mm
-    note = (f"the X-ray's field is round, as an image intensifier's, and no distortion calibration was given: its "
-            f"pincushion was estimated from the image, {shift:.1f} mm at 100 mm from the centre (a calibration, "
-            "--distortion-mm, is more exact; --distortion-mm 0 keeps a pinhole camera)" if shift else
-            "the X-ray's field is round, as an image intensifier's, and no distortion calibration was given: no "
-            "pincushion was found on the image (a calibration, --distortion-mm, is more exact)")
+    state.pinhole = (state.geometry, state.pairs, note)
     state.warnings[:] = [note if w == UNCORRECTED_INTENSIFIER else w for w in state.warnings]
-    if not shift:
-        return
     state.geometry = with_shift(state.geometry, shift)
     if state.pairs is not None:
         state.pairs = dataclasses.replace(state.pairs,
@@ -179,7 +178,7 @@ class CarmRegLogic:
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
         mask = field_mask(xray.pixels)
         round_ = round_field(mask)
-        if not intrinsics.distortion_mm and round_:
+        if round_ and not distortion_given(intrinsics):
             notes = [*notes, UNCORRECTED_INTENSIFIER]
         appearance = initial_appearance(xray, params)
         line_integral = attenuation(xray.pixels, mask, appearance.bone_dark, appearance.storage)
@@ -377,14 +376,16 @@ class CarmRegLogic:
                              f"estimating the image intensifier's pincushion ({done + 1} of up to {total})")
 
             estimate = estimate_pincushion(lambda shift: self._local_refine(state, coarse_pose, shift),
-                                           progress=progress)
+                                           grid_for(state.geometry.intrinsics.max_distortion_mm), progress,
+                                           acceptable=lambda refined: self._accepted(state, refined))
             r = estimate.refine
-            extra["pincushion"] = estimate.as_dict()
         else:
             self._report("refine", 0.5, "local image refinement")
             r = self._local_refine(state, coarse_pose)
         state.refine = r
-        accepted = state.pairs is None or r.mpde_mm <= p.refine_max_mpde_mm
+        accepted = self._accepted(state, r)
+        if estimate is not None:
+            extra["pincushion"] = {**estimate.as_dict(), "taken": accepted}
         if accepted:
             state.refined_pose = r.pose
             if estimate is not None:  # the pose found with it: the detector has it from now on
@@ -395,6 +396,11 @@ class CarmRegLogic:
         return {"enabled": True, "accepted": accepted, "coarse_reused_from_levels": reused,
                 "evaluations": r.evaluations, "similarity_start": r.similarity_start,
                 "similarity_end": r.similarity_end, "refined_mpde_mm": r.mpde_mm, **extra}
+
+    @staticmethod
+    def _accepted(state: RegistrationState, refined) -> bool:
+        """Whether a refinement's pose may be kept: the clicks still within ``refine_max_mpde_mm`` of it."""
+        return state.pairs is None or refined.mpde_mm <= state.parameters.refine_max_mpde_mm
 
     def _local_refine(self, state: RegistrationState, start_pose: np.ndarray, shift_mm: float | None = None):
         """The local image refinement (``intensity_refine``, ``parameters.refine``) from ``start_pose``; with

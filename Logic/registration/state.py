@@ -31,7 +31,7 @@ from carmreg.logic.registration.levels import (
     IdentifyParameters,
     LevelIdentification,
 )
-from carmreg.logic.registration.pincushion import PincushionEstimate
+from carmreg.logic.registration.pincushion import UNCORRECTED_INTENSIFIER, PincushionEstimate
 from carmreg.logic.registration.spatial import SpatialResult
 
 STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
@@ -106,7 +106,7 @@ class RegistrationState:
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     round_field: bool = False               # the exposed field is a disc (an image intensifier's: ``field``)
     pincushion: PincushionEstimate | None = None  # the refine stage's estimate (``pincushion``), when it ran
-    pinhole: tuple | None = None            # (geometry, pairs, warnings) before that estimate took over
+    pinhole: tuple | None = None            # (geometry, pairs, its note) before that estimate took over
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -161,7 +161,8 @@ def drop_results_from(state: RegistrationState, name: str) -> None:
     """Forget the results of ``name`` and every later stage, so a re-run stage never sees stale poses."""
     later = STAGES[STAGES.index(name):]
     if "refine" in later and state.pinhole is not None:  # the detector as prepared, before the estimated pincushion
-        state.geometry, state.pairs, state.warnings[:] = state.pinhole
+        state.geometry, state.pairs, note = state.pinhole
+        state.warnings[:] = [UNCORRECTED_INTENSIFIER if w == note else w for w in state.warnings]
         state.pinhole = None
     fields = {"database": ("database",), "spatial": ("spatial", "click_polarity", "image_polarity"),
               "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose", "pincushion"),

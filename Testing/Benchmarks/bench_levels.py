@@ -83,7 +83,8 @@ def run(ct, centroids, sim, xray, clicks, params) -> dict:
     seconds = time.perf_counter() - t0
     truth = sim.ground_truth()
     clicked = set(sim.clicks.labels) if len(clicks.labels) else set()
-    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, clicked)
+    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, clicked,
+                     shown=result.geometry.intrinsics.distortion.distort)
     stages = {s.name: s for s in result.stages}
     fine = stages.get("fine")
     landmark = evaluate(result.geometry.projection_matrix(fine.pose), centroids.as_dict(), truth, clicked) \

@@ -64,7 +64,8 @@ def run_case(ct, centroids, sim, xray, params, clicks=None):
     total = time.perf_counter() - t0
     truth = sim.ground_truth()
     fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
-    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, fitted)
+    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, fitted,
+                     shown=result.geometry.intrinsics.distortion.distort)
     stages = {s.name: {"mpde_mm": s.mpde_mm, "seconds": s.seconds, **s.extra} for s in result.stages}
     fine_pose = next(s.pose for s in result.stages if s.name == "fine")
     landmark_score = evaluate(result.geometry.projection_matrix(fine_pose), centroids.as_dict(), truth, fitted)

@@ -479,6 +479,18 @@ def test_run_gui_with_a_session_opens_it_with_its_result(window, synthetic_case,
     assert seen["names"] == window.overlay_view.level_names()
 
 
+def test_the_pincushion_setting_reaches_the_logic(window):
+    """Register step: 'Estimate an intensifier's pincushion from the image' (on by default) becomes
+    RegistrationParameters.estimate_pincushion; a session's False switches it off, anything else leaves it on."""
+    win = window
+    assert win.registration_parameters().estimate_pincushion is True
+    win.registration_panel.set_estimate_pincushion(False)
+    assert win.registration_parameters().estimate_pincushion is False
+    assert win.registration_panel.parameters()["estimate_pincushion"] is False
+    win.registration_panel.set_estimate_pincushion(None)  # a session from before stop 37
+    assert win.registration_parameters().estimate_pincushion is True
+
+
 def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_is_shown(window):
     """Register step: 'X-ray polarity' (auto by default) becomes RegistrationParameters.polarity and is kept in a
     session; the Check step shows what the registration found (result.appearance), amber when not trusted."""

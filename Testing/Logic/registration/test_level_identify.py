@@ -330,7 +330,8 @@ def _register(sample, simulated, clicks, tmp_path, stop_hopeless=True):
     params.identify.stop_hopeless = stop_hopeless
     result = CarmRegLogic().register(ct, centroids, xray, clicks, params)
     fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
-    return result, evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), fitted)
+    return result, evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), fitted,
+                            shown=result.geometry.intrinsics.distortion.distort)
 
 
 SHUFFLED = [2, 0, 1]  # the click order must not matter

@@ -7,15 +7,25 @@ import numpy as np
 import pytest
 from simulated_cases import intensifier_case
 
-from carmreg.logic.geometry.camera import project
+from carmreg.logic.errors import GeometryError
+from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.io.xray import XrayImage
 from carmreg.logic.registration.image_refine import RefineResult
-from carmreg.logic.registration.pincushion import FROM_IMAGE, GRID_MM, estimate_pincushion, profile_vertex
+from carmreg.logic.registration.pincushion import (
+    FROM_IMAGE,
+    GRID_MM,
+    NONE_FOUND,
+    estimate_pincushion,
+    grid_for,
+    profile_vertex,
+    with_shift,
+)
 from carmreg.logic.registration.pipeline import (
     UNCORRECTED_INTENSIFIER,
     CarmRegLogic,
     RegistrationParameters,
     pincushion_unknown,
+    take_pincushion,
 )
 from carmreg.logic.registration.state import STAGES, drop_results_from
 from carmreg.logic.simulation.evaluation import evaluate
@@ -49,6 +59,28 @@ def test_the_profile_keeps_the_refinement_with_the_lowest_objective():
     # a vertex whose refinement ends worse than a sampled shift: the sampled one is kept
     refine_at, asked = _refine_with(lambda s: 0.3 + (0.01 * (s - 2.0) ** 2 if s in GRID_MM else 1.0))
     assert estimate_pincushion(refine_at).shift_mm == 3.0 and len(asked) == len(GRID_MM) + 1
+
+
+def test_an_acceptable_refinement_is_kept_over_a_lower_objective_the_clicks_refuse():
+    refine_at, asked = _refine_with(lambda s: 0.3 + 0.01 * (s - 3.7) ** 2)
+    estimate = estimate_pincushion(refine_at, acceptable=lambda r: r.pose[0] in GRID_MM)
+    assert len(asked) == len(GRID_MM) + 1 and estimate.shift_mm == 3.0
+    estimate = estimate_pincushion(refine_at, acceptable=lambda r: False)  # none acceptable: the lowest, refused later
+    assert estimate.shift_mm == pytest.approx(3.7)
+
+
+def test_a_large_detector_samples_only_the_shifts_it_accepts():
+    """A 12-inch intensifier (1024 x 0.3 mm) accepts at most 4.24 mm in the model (its corners): the grid is scaled
+    to it and every shift makes a valid detector; the benchmark's and the sample's 0.25 mm detectors keep 0-3-6."""
+    big = CarmIntrinsics(1000.0, (0.3, 0.3), (1024, 1024))
+    grid = grid_for(big.max_distortion_mm)
+    assert big.max_distortion_mm == pytest.approx(4.2386, abs=1e-3) and grid[-1] == pytest.approx(4.2343, abs=1e-3)
+    geometry = CarmGeometry(big, np.zeros(3), 600.0)
+    assert [with_shift(geometry, s).intrinsics.distortion_mm for s in grid] == list(grid)
+    with pytest.raises(GeometryError):
+        with_shift(geometry, GRID_MM[-1])
+    for size in (960, 1024):
+        assert grid_for(CarmIntrinsics(1000.0, (0.25, 0.25), (size, size)).max_distortion_mm) == GRID_MM
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +132,22 @@ def test_an_uncalibrated_intensifier_gets_its_pincushion_from_the_image(sample_c
     assert "pincushion" in state.stages[-1].extra and UNCORRECTED_INTENSIFIER in state.warnings
 
 
+def test_no_pincushion_found_keeps_the_pinhole_and_says_so(sample_ct, intensifier, tmp_path):
+    ct, _, centroids = sample_ct
+    sim, xray = intensifier
+    state = CarmRegLogic().prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=str(tmp_path)))
+    refine_at, _ = _refine_with(lambda s: 0.3 + 0.01 * s)
+    prepared = state.geometry
+    take_pincushion(state, estimate_pincushion(refine_at))
+    intr = state.geometry.intrinsics
+    assert intr.distortion_mm == 0.0 and intr.sources["distortion_mm"] == FROM_IMAGE + NONE_FOUND
+    assert UNCORRECTED_INTENSIFIER not in state.warnings
+    assert any("no pincushion was found on the image" in w for w in state.warnings)
+    np.testing.assert_allclose(state.pairs.uv_px, sim.clicks.uv_px)
+    drop_results_from(state, "levels")
+    assert UNCORRECTED_INTENSIFIER in state.warnings and state.geometry is prepared
+
+
 def test_only_a_round_field_without_a_distortion_given_is_estimated(sample_ct, intensifier, tmp_path):
     """``--distortion-mm 0`` says a pinhole camera (source "manual"): not estimated; nor when switched off."""
     ct, _, centroids = sample_ct
@@ -112,5 +160,6 @@ def test_only_a_round_field_without_a_distortion_given_is_estimated(sample_ct, i
         return state.round_field, pincushion_unknown(state)
 
     assert unknown({"distortion_mm": "default (none)"}) == (True, True)
+    assert unknown({}) == (True, True)  # a Slicer volume or an in-memory image: none recorded, none given
     assert unknown({"distortion_mm": "manual"}) == (True, False)
     assert unknown({"distortion_mm": "default (none)"}, estimate_pincushion=False) == (True, False)

@@ -62,7 +62,8 @@ def test_unfitted_levels_land_within_5_mm_and_are_named_correctly(sample, cache,
     ct, _, centroids = sample
     sim, xray = _simulated(sample, seed)
     result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
-    score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels))
+    score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels),
+                     shown=result.geometry.intrinsics.distortion.distort)
     unfitted = [r for r in score["levels"] if not r["fitted"]]
     assert result.ok, result.warnings
     assert len(unfitted) >= 1
@@ -83,7 +84,8 @@ def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose
     intr = dataclasses.replace(geometry.intrinsics, distortion_mm=sim.distortion.k_per_mm2 * 100.0**3)
     xray = XrayImage(sim.pixels.astype(np.float32), intr, geometry.sod_mm, True, "sim-2")
     result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
-    score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels))
+    score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels),
+                     shown=result.geometry.intrinsics.distortion.distort)
     assert result.ok and result.level_check.status == "confident", result.warnings
     assert score["max_unfitted_pde_pose_mm"] < 1.5, score["levels"]
     assert UNCORRECTED_INTENSIFIER not in result.warnings  # its round field is calibrated; without, it is said
@@ -139,7 +141,8 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     logic = CarmRegLogic(progress=lambda stage, fraction, message: progress.append((stage, fraction)))
     result = logic.register(ct, centroids, xray, clicks, RegistrationParameters(cache_dir=cache))
     truth = json.loads((sample_case_dir / "ground_truth.json").read_text())
-    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, set(clicks.labels))
+    score = evaluate(result.projection_matrix, centroids.as_dict(), truth, set(clicks.labels),
+                     shown=result.geometry.intrinsics.distortion.distort)
     assert result.ok and score["all_named_correctly"]
     assert score["max_unfitted_pde_pose_mm"] < 5.0
     assert [s for s, f in progress if f == 1.0] == list(STAGES)
