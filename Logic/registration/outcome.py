@@ -66,9 +66,9 @@ def build_result(state: RegistrationState) -> RegistrationResult:
 
 def geometry_sources(state: RegistrationState) -> dict:
     """Where each geometry value came from (the X-ray's reader), the pincushion from the refine stage's estimate
-    when it ran (``pincushion``)."""
+    when the detector took it (``pipeline.take_pincushion``)."""
     sources = dict(state.xray.sources)
-    if state.pincushion is not None:
+    if state.pinhole is not None:
         sources["distortion_mm"] = state.geometry.intrinsics.sources["distortion_mm"]
     return sources
 

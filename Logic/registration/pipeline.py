@@ -107,6 +107,13 @@ def ideal_clicks(clicks: Landmarks2D, intr: CarmIntrinsics) -> Landmarks2D:
     return dataclasses.replace(clicks, uv_px=intr.distortion.undistort(clicks.uv_px))
 
 
+def _pair_arrays(pairs) -> tuple[np.ndarray, np.ndarray]:
+    """(CT points (n, 3) LPS mm, X-ray clicks (n, 2) px) of ``pairs``; empty without pairs (no clicks)."""
+    if pairs is None:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    return pairs.points_lps_mm, pairs.uv_px
+
+
 def distortion_given(intr: CarmIntrinsics) -> bool:
     """Whether the detector's distortion was given (a calibration, or 0 for a pinhole camera: ``--distortion-mm``),
     not left at the reader's default (its source then says "default"; none recorded is none given)."""
@@ -125,11 +132,10 @@ def take_pincushion(state: RegistrationState, estimate: PincushionEstimate) -> N
     kept): the geometry (its source ``pincushion.FROM_IMAGE``), the pairs' clicks taken to their ideal points
     (``ideal_clicks``) and the warning on the round field replaced by the estimate's note. ``state.pinhole`` keeps
     what they were (``drop_results_from`` restores them)."""
-    shift, note = estimate.shift_mm, estimate.note()
-    state.pincushion = estimate
+    note = estimate.note()
     state.pinhole = (state.geometry, state.pairs, note)
     state.warnings[:] = [note if w == UNCORRECTED_INTENSIFIER else w for w in state.warnings]
-    state.geometry = with_shift(state.geometry, shift)
+    state.geometry = with_shift(state.geometry, estimate.shift_mm)
     if state.pairs is not None:
         state.pairs = dataclasses.replace(state.pairs,
                                           uv_px=state.geometry.intrinsics.distortion.undistort(state.pairs.uv_px))
@@ -366,9 +372,7 @@ class CarmRegLogic:
         p = state.parameters
         if not p.refine.enabled:
             return {"enabled": False}
-        points, uv = (state.pairs.points_lps_mm, state.pairs.uv_px) if state.pairs is not None \
-            else (np.zeros((0, 3)), np.zeros((0, 2)))
-        coarse_pose, reused = self._coarse_refined_pose(state, points, uv)
+        coarse_pose, reused = self._coarse_refined_pose(state, *_pair_arrays(state.pairs))
         extra, estimate = {}, None
         if pincushion_unknown(state):
             def progress(done: int, total: int) -> None:
@@ -406,8 +410,8 @@ class CarmRegLogic:
         """The local image refinement (``intensity_refine``, ``parameters.refine``) from ``start_pose``; with
         ``shift_mm``, on the detector given that pincushion (``pincushion.with_shift``), the clicks taken to their
         ideal points through it."""
-        p, pairs = state.parameters, state.pairs
-        points, uv = (pairs.points_lps_mm, pairs.uv_px) if pairs is not None else (np.zeros((0, 3)), np.zeros((0, 2)))
+        p = state.parameters
+        points, uv = _pair_arrays(state.pairs)
         geometry = state.geometry
         if shift_mm is not None:  # the pairs' clicks are as shown (``pincushion_unknown``: no distortion given)
             geometry = with_shift(state.geometry, shift_mm)

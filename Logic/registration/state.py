@@ -31,7 +31,7 @@ from carmreg.logic.registration.levels import (
     IdentifyParameters,
     LevelIdentification,
 )
-from carmreg.logic.registration.pincushion import UNCORRECTED_INTENSIFIER, PincushionEstimate
+from carmreg.logic.registration.pincushion import UNCORRECTED_INTENSIFIER
 from carmreg.logic.registration.spatial import SpatialResult
 
 STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
@@ -105,8 +105,8 @@ class RegistrationState:
     turned_fits: dict = field(default_factory=dict)  # the orientation check's registrations, per (polarity, storage)
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     round_field: bool = False               # the exposed field is a disc (an image intensifier's: ``field``)
-    pincushion: PincushionEstimate | None = None  # the refine stage's estimate (``pincushion``), when it ran
-    pinhole: tuple | None = None            # (geometry, pairs, its note) before that estimate took over
+    pinhole: tuple | None = None            # (geometry, pairs, the estimate's note) before the refine stage's
+    #                                         pincushion estimate (``pincushion``) took over; None: none taken
     drr_line_integral: np.ndarray | None = None
     stages: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -165,7 +165,7 @@ def drop_results_from(state: RegistrationState, name: str) -> None:
         state.warnings[:] = [UNCORRECTED_INTENSIFIER if w == note else w for w in state.warnings]
         state.pinhole = None
     fields = {"database": ("database",), "spatial": ("spatial", "click_polarity", "image_polarity"),
-              "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose", "pincushion"),
+              "depth": ("depth",), "fine": ("fine",), "refine": ("refine", "refined_pose"),
               "levels": ("identification",), "final_drr": ("drr_line_integral",)}
     for stage in later:
         for attribute in fields[stage]:

@@ -128,7 +128,7 @@ def test_an_uncalibrated_intensifier_gets_its_pincushion_from_the_image(sample_c
     np.testing.assert_allclose(state.pairs.uv_px, sim.clicks.uv_px)
     state.parameters.refine_max_mpde_mm = 0.0  # a refinement the clicks refuse: its pincushion goes with it
     logic.run_stage(state, "refine")
-    assert state.refined_pose is None and state.pincushion is None and state.geometry is pinhole
+    assert state.refined_pose is None and state.pinhole is None and state.geometry is pinhole
     assert "pincushion" in state.stages[-1].extra and UNCORRECTED_INTENSIFIER in state.warnings
 
 
