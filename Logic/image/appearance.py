@@ -261,6 +261,17 @@ class Appearance:
                      "level answer rests on it alone; set the "
                      "polarity by hand if the overlay looks inverted")
 
+    def not_confirmed_by(self, second: Appearance) -> None:
+        """This clear verdict (no clicks, the image as it is, clear by less than ``CHECKED_REFINED_GC``) no longer
+        clear: the second opinion without the shading (``second``, ``REFINED_WITHOUT_SHADING``) leans the same way
+        but by less than its own clear gap ``CLEAR_REFINED_GC``, so the two together are not clear evidence (seen:
+        report cases 125 and 149's large patients, bone bright, taken bone dark clearly by 0.30 and 0.34, the second
+        opinion bone dark by 0.09 and 0.02). The polarity stays."""
+        self.clear = False
+        self.note = (f"{self.note}; without its shading above {WITHOUT_SHADING_MM:g} mm the image leans the same way "
+                     f"only by {second.clarity_gc:.3f} (< {second.threshold_gc:g}): not clear, so no level answer "
+                     "rests on it alone; set the polarity by hand if the overlay looks inverted")
+
     def take_polarity_verdict(self, again: Appearance, evidence: str, threshold_gc: float) -> None:
         """Take the verdict of ``again`` on the same polarity, decided on more evidence (``decide_polarity`` with
         ``evidence``, e.g. the levels contest's winner, judged at the clicks too, where a lead of ``threshold_gc`` is

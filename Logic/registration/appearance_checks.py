@@ -287,8 +287,9 @@ class AppearanceChecks:
         plain map's peaks miss the true pose (``Testing/Benchmarks/large_patient_shading.py``). When it leads with
         the other polarity, that polarity is used, never clear (``Appearance.as_second_opinion``: no level answer is
         proposed on it), and the levels stage compares the images the same way, reusing its refinements
-        (``_levels``); otherwise the appearance stays as it was. Either way
-        ``scores["without_clicks_without_shading"]`` records it."""
+        (``_levels``). When it leads with the same polarity but not clearly (by less than ``CLEAR_REFINED_GC``), a
+        clear first verdict is no longer clear (``Appearance.not_confirmed_by``); otherwise the appearance stays as it
+        was. Either way ``scores["without_clicks_without_shading"]`` records it."""
         a, p = state.appearance, state.parameters
         if (state.image_polarity is None or _settled(state, CHECKED_REFINED_GC) or p.polarity in POLARITIES
                 or a.orientation != "as-stored"):
@@ -297,6 +298,8 @@ class AppearanceChecks:
         a.scores["without_clicks_without_shading"] = unshaded.as_dict()
         again = self._polarity_again(state, unshaded.scores, REFINED_WITHOUT_SHADING)
         if again.polarity == a.polarity:
+            if a.clear and not again.clear:
+                a.not_confirmed_by(again)
             return
         again.as_second_opinion(a)
         again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
