@@ -98,10 +98,11 @@ def final_drr_detector(intr: CarmIntrinsics, sod_mm: float, ct_spacing_mm: float
     return intr.scaled_to((max(1, int(round(cols * scale))), max(1, int(round(rows * scale)))))
 
 
-def ideal_clicks(clicks: Landmarks2D, intr: CarmIntrinsics) -> Landmarks2D:
+def ideal_clicks(clicks, intr: CarmIntrinsics):
     """The clicks where a pinhole camera would put them (``geometry.distortion``: the X-ray's radial distortion
-    undone), so that every stage compares them with ``P``; ``build_result`` reports them as clicked. ``clicks``
-    itself when the detector has no distortion."""
+    undone), so that every stage compares them with ``P``; ``build_result`` reports them as clicked. ``clicks``:
+    any dataclass with ``uv_px`` (``Landmarks2D``, ``Pairs``), returned itself when the detector has no
+    distortion."""
     if not intr.distortion_mm:
         return clicks
     return dataclasses.replace(clicks, uv_px=intr.distortion.undistort(clicks.uv_px))
@@ -137,8 +138,7 @@ def take_pincushion(state: RegistrationState, estimate: PincushionEstimate) -> N
     state.warnings[:] = [note if w == UNCORRECTED_INTENSIFIER else w for w in state.warnings]
     state.geometry = with_shift(state.geometry, estimate.shift_mm)
     if state.pairs is not None:
-        state.pairs = dataclasses.replace(state.pairs,
-                                          uv_px=state.geometry.intrinsics.distortion.undistort(state.pairs.uv_px))
+        state.pairs = ideal_clicks(state.pairs, state.geometry.intrinsics)
 
 
 class CarmRegLogic:
