@@ -15,17 +15,17 @@ from carmreg.logic.registration.pipeline import CarmRegLogic
 from carmreg.logic.registration.state import RegistrationParameters
 
 
-def appearance_case_registrar(tmp_path_factory, cache_name: str, with_clicks: bool):
+def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: bool):
     """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that case and
     variant of the appearance benchmark, on the case's CT (``CaseMaker.ct_name``: every third case the second CT),
-    with its unnamed clicks or none (a cache named ``cache_name`` of their own), or its clicks named ``names`` when
+    with its unnamed clicks or none (DRR databases cached in ``cache_dir``), or its clicks named ``names`` when
     given; a case of the second CT skips the test without ../shared."""
     sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=True)
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / cache_name))
+    params = RegistrationParameters(cache_dir=cache_dir)
 
     def registered(case: int, variant_name: str, names: list[str] | None = None):
         if case % 3 == 2 and "abdomen" not in maker.cts:

@@ -40,6 +40,15 @@ def totalseg_dir(shared_data_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def drr_cache_dir(tmp_path_factory) -> str:
+    """One DRR database cache folder for the whole session. A database is keyed on the CT's mu level, the nominal
+    geometry and the grid (``registration.database.database_key``), so registrations of the same CT on the same
+    detector share one, whichever test builds it first; the same numbers as a fresh build (float32 saved whole).
+    Tests of the cache itself (damage, keys, unwritable folders) use folders of their own."""
+    return str(tmp_path_factory.mktemp("drr-cache"))
+
+
+@pytest.fixture(scope="session")
 def sample_case_dir() -> Path:
     """``Resources/SampleCase``; skips when its CT (ct.nrrd) has not been generated."""
     path = REPO_ROOT / "Resources" / "SampleCase"

@@ -245,14 +245,14 @@ def test_the_pincushion_is_measured_on_a_bead_grid_volume_slicer_loaded(mrml, tm
 
 
 @pytest.mark.slow
-def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_xray(mrml, sample_nodes, tmp_path):
+def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_xray(mrml, sample_nodes, drr_cache_dir):
     from carmreg.logic.geometry.camera import project
 
     scene = mrml[0]
     module = _module()
     parameters = sample_nodes["parameters"]
     parameters.SetParameter("CheckLevels", "false")  # named clicks taken as named: one labelling, faster
-    result, ct, ct_landmarks, xray = module.slicer_nodes().register_nodes(parameters, cache_dir=str(tmp_path / "cache"))
+    result, ct, ct_landmarks, xray = module.slicer_nodes().register_nodes(parameters, cache_dir=drr_cache_dir)
     assert result.level_check is None or result.level_check.mode == "named"
     assert result.ok, result.warnings
     pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]

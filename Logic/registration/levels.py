@@ -24,7 +24,14 @@ or a refit), and completed in full should its lower bound not clear that rival a
 verdict is the one full refinements give. Finally the
 leading two are each refitted from the other's refined pose (a second, independent start; each keeps its better
 refinement), so neither loses to a local optimum of its optimiser; if the lead changes hands, the answer is not
-stable (``level_confidence``). Should the leader still explain the image poorly (the confidence rule's floor or
+stable (``level_confidence``). Then each of the leading two is refitted twice more from its own pose tilted
+cranio-caudally (``ry``) by -+``tilt_leaders_deg`` (``_tilt_leaders``): three clicks along the spine fix the
+magnification and the tilt only together (the clicks' spacing is the same at a nearer source and a steeper tilt), so
+a refinement can settle on the wrong pair, and the leaders' poses, each refitted from the other's, can share it
+(seen, stop 39: report case 191's intensifier images, L1-L3 clicked; L1-L3 ended at 0.614 with the source 23 mm
+and the tilt 9.6 degrees off, where the true pose scores 0.41, and L2-L4 won, CONFIDENT, at 0.508; from its pose
+tilted +8 degrees L1-L3 reaches 0.39); a lead that changes hands there is not stable either. Should the
+leader still explain the image poorly (the confidence rule's floor or
 cap), the leading two are restarted once more, each from its own pose with a fresh search (``_restart_leaders``):
 a right labelling whose refinement stopped in a local optimum would otherwise be flagged by the floor; a lead that
 changes hands there is not stable either.
@@ -88,6 +95,7 @@ class IdentifyParameters:
     image_starts: int = 3                   # no clicks: spatial-map peaks refined (``image_starts``)
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
     restart_poor_leaders: bool = True       # and restart both when the leader explains the image poorly
+    tilt_leaders_deg: float = 8.0           # and refit both from their poses tilted -+ this about L (0: not)
     stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
 
@@ -208,9 +216,14 @@ def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule, judged: bool = 
     return checks["image_agreement"]["ok"] and checks.get("landmark_fit", {"ok": True})["ok"]
 
 
+def _leading_two(fits: list[LabellingFit]) -> list[LabellingFit]:
+    """The best two registered labellings (fewer when fewer are registered), the leader first."""
+    return sorted((f for f in fits if f.refined), key=lambda f: f.score)[:2]
+
+
 def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     """Refit the leading two from each other's refined pose; True when the same labelling still leads."""
-    ranked = sorted((f for f in fits if f.refined), key=lambda f: f.score)
+    ranked = _leading_two(fits)
     if len(ranked) < 2:
         return True
     a, b = ranked[0], ranked[1]
@@ -220,6 +233,21 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     return _leader(fits) is a
 
 
+def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float) -> bool:
+    """Refit each of the leading two from its own refined pose tilted cranio-caudally (``ry``, pose index 4) by
+    -``tilt_deg`` and +``tilt_deg`` (module docstring), each keeping its best refinement; True when the same
+    labelling still leads."""
+    ranked = _leading_two(fits)
+    if not ranked:
+        return True
+    leader = ranked[0]
+    for f in ranked:
+        starts = [f.pose + np.array([0.0, 0.0, 0.0, 0.0, sign * tilt_deg, 0.0]) for sign in (-1.0, 1.0)]
+        for start in starts:
+            refit_from(ctx, f, start)
+    return _leader(fits) is leader
+
+
 def _restart_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     """Restart the image refinement of each of the leading two afresh from its own refined pose
     (``labelling_fit.restart``), each keeping its better refinement; True when the same labelling still leads.
@@ -227,11 +255,11 @@ def _restart_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
     optimum of its refinement looks exactly like that (seen: an intensifier image of the second CT whose right
     labelling stopped at GC 0.36, clicks 3.2 mm, where a restart reached 0.59 and 1.7 mm, its rival none the
     better: 0.15 -> 0.15). Both leaders are restarted, so the contest stays fair."""
-    ranked = sorted((f for f in fits if f.refined), key=lambda f: f.score)
+    ranked = _leading_two(fits)
     if not ranked:
         return True
     leader = ranked[0]
-    for f in ranked[:2]:
+    for f in ranked:
         restart(ctx, f)
     return _leader(fits) is leader
 
@@ -296,6 +324,10 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits)
         _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
+        _settle(ctx, fits, keep)
+    if p.tilt_leaders_deg > 0:
+        stable = _tilt_leaders(ctx, fits, p.tilt_leaders_deg) and stable
+        _contest(ctx, fits, [], keep, stop)
         _settle(ctx, fits, keep)
     best = _leader(fits)
     measure_agreement(ctx, [best])

@@ -10,18 +10,18 @@ from carmreg.logic.io.landmarks import read_landmarks_2d
 pytestmark = pytest.mark.slow
 
 
-def _args(case_dir, out, *clicks):
+def _args(case_dir, out, cache_dir, *clicks):
     return ["register", "--ct", str(case_dir / "ct.nrrd"), "--ct-landmarks", str(case_dir / "ct_centroids.mrk.json"),
-            "--xray", str(case_dir / "xray.dcm"), "--out", str(out), "--cache-dir", str(out.parent / "cache"),
+            "--xray", str(case_dir / "xray.dcm"), "--out", str(out), "--cache-dir", cache_dir,
             *clicks]
 
 
-def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir, tmp_path, capsys):
+def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir, tmp_path, drr_cache_dir, capsys):
     truth = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")
     order = [1, 2, 0]
     clicks = tmp_path / "clicks.json"
     clicks.write_text(json.dumps([truth.uv_px[i].tolist() for i in order]))  # [[column, row], ...], no names
-    code = main(_args(sample_case_dir, tmp_path / "out", "--xray-landmarks", str(clicks)))
+    code = main(_args(sample_case_dir, tmp_path / "out", drr_cache_dir, "--xray-landmarks", str(clicks)))
     assert code == 0
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
     check = doc["level_check"]
@@ -44,8 +44,8 @@ def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir,
     assert "NOT FOR DIAGNOSIS" in text and "unnamed clicks, named from the image" in text
 
 
-def test_no_clicks_names_the_levels_in_view(sample_case_dir, tmp_path, capsys):
-    code = main(_args(sample_case_dir, tmp_path / "out", "--no-clicks"))
+def test_no_clicks_names_the_levels_in_view(sample_case_dir, tmp_path, drr_cache_dir, capsys):
+    code = main(_args(sample_case_dir, tmp_path / "out", drr_cache_dir, "--no-clicks"))
     assert code == 0
     check = json.loads((tmp_path / "out" / "result.json").read_text())["level_check"]
     assert check["mode"] == "image_only" and {"T10", "T11", "T12"} <= set(check["visible_labels"])

@@ -101,7 +101,7 @@ def test_too_few_common_levels_is_explained_before_and_on_running(window, synthe
 
 
 @pytest.mark.slow
-def test_sample_case_registers_from_the_gui_and_names_its_levels(window):
+def test_sample_case_registers_from_the_gui_and_names_its_levels(window, drr_cache_dir):
     """The embedded sample (real CT, simulated C-arm image with distortion, K-wires and per-level motion):
     the overlay names every CT level that projects into the image, and each visible level lands within
     5 mm (detector) of its true position - also the levels that were not fitted."""
@@ -112,7 +112,7 @@ def test_sample_case_registers_from_the_gui_and_names_its_levels(window):
         paths = sample_case()
     except InputFileError as exc:
         pytest.skip(str(exc))
-    window.parameter_overrides = {"cache_dir": None}
+    window.parameter_overrides = {"cache_dir": drr_cache_dir}
     window.load_sample_case()
     ct_levels = window.ct_store.labels()
     window.run_registration(wait=True)

@@ -336,7 +336,7 @@ def test_a_named_click_without_ct_centroid_is_skipped_when_mapping_the_assigned_
 
 
 @pytest.mark.slow
-def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window):
+def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window, drr_cache_dir):
     """The embedded sample (real CT, simulated C-arm X-ray): its three X-ray clicks, names removed, are
     identified by the registration; the X-ray view and the result panel show it."""
     from carmreg.logic.errors import InputFileError
@@ -346,7 +346,7 @@ def test_sample_case_with_unnamed_clicks_is_identified_as_t10_t11_t12(window):
         sample_case()
     except InputFileError as exc:
         pytest.skip(str(exc))
-    window.parameter_overrides = {"cache_dir": None}
+    window.parameter_overrides = {"cache_dir": drr_cache_dir}
     window.load_sample_case()
     store = window.xray_store
     assert store.labels() == ["T10", "T11", "T12"]

@@ -255,10 +255,10 @@ def case(sample_ct):
     return simulated_ap_case(sample_ct, 4321, "T8", 11)
 
 
-def _appearance(sample_ct, xray, tmp_path_factory):
+def _appearance(sample_ct, xray, drr_cache_dir):
     ct, _, centroids = sample_ct
     logic = CarmRegLogic()
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
     state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))), params)
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
@@ -278,11 +278,11 @@ def _bright_png(pixels: np.ndarray, geometry, path) -> XrayImage:
 
 
 @pytest.mark.slow
-def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct, case, tmp_path, tmp_path_factory):
+def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct, case, tmp_path, drr_cache_dir):
     sim, geometry = case
     pixels = sim.pixels.astype(np.float64)
     dark = XrayImage(pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, False, "dark")  # header wrong
-    a = _appearance(sample_ct, dark, tmp_path_factory)
+    a = _appearance(sample_ct, dark, drr_cache_dir)
     assert (a.polarity, a.decided_by, a.clear, a.orientation) == ("bone-dark", "image (refined)", True, "as-stored")
     assert a.header_polarity == "bone-bright" and a.clarity_gc >= 0.05
     # refined with the storage the image agrees with (a log display): measured 0.77 against 0.36; converted as
@@ -291,7 +291,7 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
 
     bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
     assert bright.bone_dark  # what a PNG "says": nothing, so the old default
-    b = _appearance(sample_ct, bright, tmp_path_factory)
+    b = _appearance(sample_ct, bright, drr_cache_dir)
     assert (b.polarity, b.clear, b.storage) == ("bone-bright", True, "log-display")
 
     x = pixels / pixels.max()
@@ -300,19 +300,19 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
     jpeg = tmp_path / "fluoro.jpg"
     Image.fromarray(np.round(sharpened * 255).astype(np.uint8)).save(jpeg, quality=85)
     jpg = load_xray(jpeg, sdd_mm=geometry.intrinsics.sdd_mm, pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
-    c = _appearance(sample_ct, jpg, tmp_path_factory)
+    c = _appearance(sample_ct, jpg, drr_cache_dir)
     assert (c.polarity, c.clear) == ("bone-dark", True)
 
 
 @pytest.mark.slow
 def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_levels_stage_reuses_them(
-        sample_ct, case, tmp_path, tmp_path_factory):
+        sample_ct, case, tmp_path, drr_cache_dir):
     """A bone-bright PNG without clicks: each polarity's spatial-map peaks are refined on the image, bone bright
     wins clearly, and the no-click level answer starts from those refinements instead of computing them again."""
     ct, _, centroids = sample_ct
     sim, geometry = case
     bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, bright, Landmarks2D([], np.zeros((0, 2))), params)
     for stage in ("database", "spatial", "levels"):
@@ -334,7 +334,7 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
     assert all(g.labels == [] for g in evidence.registered["bone-bright"])  # the answer named copies
 
 
-def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch):
+def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
     """(logic, state) of the case stored as a bone-bright PNG with unnamed clicks, after the spatial stage, under
     stop 13's clear orientation lead at the clicks (0.10) and without stop 32's close call: its two leaders are
     wrong labellings, along which the stored orientation leads its mirror by less than that, so the appearance is
@@ -348,7 +348,7 @@ def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factor
     ct, _, centroids = sample_ct
     sim, geometry = case
     bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
     for stage in ("database", "spatial"):
@@ -358,11 +358,11 @@ def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factor
 
 @pytest.mark.slow
 def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sample_ct, case, tmp_path,
-                                                                          tmp_path_factory, monkeypatch):
+                                                                          drr_cache_dir, monkeypatch):
     """The levels stage judges the appearance again with its winner (next test); a cancel in the middle (here in
     the orientation check at the clicks) leaves the appearance, the polarity evidence and the warnings as the
     spatial stage left them, not half updated (a re-run would otherwise trust an orientation never checked)."""
-    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch)
+    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch)
     before = json.dumps(state.appearance.as_dict(), sort_keys=True, default=str)
     at_clicks, warnings = state.click_polarity, list(state.warnings)
 
@@ -378,12 +378,12 @@ def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sampl
 
 @pytest.mark.slow
 def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
-        sample_ct, case, tmp_path, tmp_path_factory, monkeypatch):
+        sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
     """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
     under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
     rather than computing them again; the contest's winner, not among them, is judged too (``judged_also``)."""
     sim = case[0]
-    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, tmp_path_factory, monkeypatch)
+    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch)
     assert not state.appearance.trusted
     a, at_clicks = state.appearance, state.click_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)
@@ -414,7 +414,7 @@ def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_
 
 
 @pytest.mark.slow
-def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct, case, tmp_path_factory):
+def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct, case, drr_cache_dir):
     ct, _, centroids = sample_ct
     sim, geometry = case
     cols = sim.pixels.shape[1]
@@ -422,7 +422,7 @@ def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct
                          "mirrored")
     uv = sim.clicks.uv_px.copy()
     uv[:, 0] = cols - 1 - uv[:, 0]
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "appearance-cache"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
     result = CarmRegLogic().register(ct, centroids, mirrored, Landmarks2D([None] * len(uv), uv), params)
     assert result.appearance.orientation != "as-stored" or not result.appearance.orientation_clear
     assert result.level_check.status != "confident"

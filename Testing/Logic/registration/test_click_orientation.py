@@ -148,10 +148,10 @@ def test_turned_clicks_keep_their_names():
 
 
 @pytest.fixture(scope="module")
-def mirrored_display(tmp_path_factory):
+def mirrored_display(tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's tune case 0 (chest CT, its independent simulator), an intensifier image shown
     mirrored left-right, bone dark, 16-bit PNG: (CT, its centroids, X-ray, the three clicks' (u, v) px, parameters
-    with a cache of their own)."""
+    with the session's DRR cache)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
@@ -163,7 +163,7 @@ def mirrored_display(tmp_path_factory):
     detector = app.DETECTORS[variant.detector]
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
     (ct, _, centroids), _, _ = maker.cts["chest"]
-    params = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
     return ct, centroids, xray, np.asarray(record["truth"]["clicks_uv_px"], float), params
 
 
@@ -221,11 +221,11 @@ def case(sample_ct):
     return simulated_ap_case(sample_ct, 2468, "T10", 5)
 
 
-def _judged(sample_ct, pixels, uv_px, labels, geometry, tmp_path_factory, rivals):
+def _judged(sample_ct, pixels, uv_px, labels, geometry, drr_cache_dir, rivals):
     """Run the pipeline to the polarity at the clicks, then judge ``rivals`` at the clicks' poses."""
     ct, _, centroids = sample_ct
     xray = XrayImage(pixels.astype(np.float32).copy(), geometry.intrinsics, geometry.sod_mm, True, "test")
-    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    p = RegistrationParameters(cache_dir=drr_cache_dir)
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, Landmarks2D(list(labels), uv_px), p)
     for stage in ("database", "spatial"):
@@ -241,10 +241,10 @@ def _judged(sample_ct, pixels, uv_px, labels, geometry, tmp_path_factory, rivals
 
 @pytest.mark.slow
 def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_is_told(sample_ct, case,
-                                                                                       tmp_path_factory):
+                                                                                       drr_cache_dir):
     sim, geometry = case
     labels, uv = sim.clicks.labels, sim.clicks.uv_px
-    shown = _judged(sample_ct, sim.pixels, uv, labels, geometry, tmp_path_factory,
+    shown = _judged(sample_ct, sim.pixels, uv, labels, geometry, drr_cache_dir,
                     ("mirrored-left-right", "turned-180"))
     assert shown.scores["as-stored"] >= max(shown.scores["mirrored-left-right"],
                                             np.nan_to_num(shown.scores["turned-180"], nan=-1.0)) \
@@ -252,13 +252,13 @@ def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_
     assert not shown.fitted["turned-180"]  # named clicks upside down: no C-arm pose puts T9 below T11
 
     upside_down = _judged(sample_ct, sim.pixels[::-1, ::-1], orient_uv(uv, "turned-180", (512, 512)), labels,
-                          geometry, tmp_path_factory, ("mirrored-left-right", "turned-180"))
+                          geometry, drr_cache_dir, ("mirrored-left-right", "turned-180"))
     assert upside_down.fitted["turned-180"]
     assert upside_down.scores["turned-180"] >= upside_down.scores["as-stored"] + REFUSE_ORIENTATION_AT_CLICKS_GC
 
 
 @pytest.mark.slow
-def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again(sample_ct, case, tmp_path_factory,
+def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again(sample_ct, case, drr_cache_dir,
                                                                                  monkeypatch):
     """The levels stage judges the orientation again with its winner added: the labellings the spatial stage already
     registered on each rival are reused (a registration is seeded: the same inputs give the same fit), so the
@@ -268,7 +268,7 @@ def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again
     sim, geometry = case
     ct, _, centroids = sample_ct
     xray = XrayImage(sim.pixels.astype(np.float32).copy(), geometry.intrinsics, geometry.sod_mm, True, "test")
-    p = RegistrationParameters(cache_dir=str(tmp_path_factory.getbasetemp() / "orientation-cache"))
+    p = RegistrationParameters(cache_dir=drr_cache_dir)
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, Landmarks2D(list(sim.clicks.labels), sim.clicks.uv_px), p)
     for stage in ("database", "spatial"):

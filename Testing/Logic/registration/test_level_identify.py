@@ -176,12 +176,15 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
 
 def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11,
                     appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70,
-                    restarted: dict | None = None, restarts: list | None = None) -> list:
+                    restarted: dict | None = None, restarts: list | None = None, tilted: dict | None = None,
+                    tilts: list | None = None) -> list:
     """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
     0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
     indices registered, in order. ``restarted``: {index: (GC, score)} a restart (``labelling_fit.restart``) of that
-    labelling reaches (others: unchanged); ``restarts`` collects the indices restarted. The contest's control flow
-    is the product's own."""
+    labelling reaches (others: unchanged); ``restarts`` collects the indices restarted; ``tilted``: {index: (GC,
+    score)} a refit from its pose tilted about L (``levels._tilt_leaders``: a start whose ``ry`` is not 0) reaches
+    (others: unchanged); ``tilts`` collects (index, tilt in degrees) of those refits. The contest's control flow is
+    the product's own."""
     import carmreg.logic.registration.levels as levels
 
     fits = [LabellingFit([f"X{i}"], i, np.zeros((1, 3)), np.zeros((1, 2))) for i in range(n)]
@@ -191,6 +194,14 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
         i = fits.index(fit)
         if fit.refine is None:
             order.append(i)
+        tilt = 0.0 if start_pose is None else float(np.asarray(start_pose)[4])
+        if tilt:
+            if tilts is not None:
+                tilts.append((i, tilt))
+            if i in (tilted or {}):
+                gc, score = tilted[i]
+                fit.refine = RefineResult(np.zeros(6), 0.0, gc, 1.0, 1, objective_end=score)
+            return fit
         good = i == truth
         fit.refine = RefineResult(np.zeros(6), 0.0, truth_gc if good else gc_of_the_others, 1.0, 1,
                                   objective_end=(0.30 if good else 0.70) + 0.001 * i)
@@ -247,6 +258,21 @@ def test_a_leader_under_the_image_floor_is_restarted_with_its_rival_and_a_restar
     restarts.clear()
     _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], restarts=restarts)
     assert restarts == [] and ident.status == "confident"
+
+
+def test_the_leading_two_are_refitted_tilted_about_l_and_a_rival_that_then_leads_is_not_stable(monkeypatch):
+    """Report case 191's intensifier images (stop 39): the right labelling stopped at 0.614, its source and its
+    cranio-caudal tilt off together, and the wrong one won, confident, at 0.508; from its own pose tilted 8 degrees
+    about L the right one reaches 0.391. Each of the leading two is refitted from its pose tilted by -8 and +8
+    degrees; the rival that then leads wins, and a lead that changed hands is never confident."""
+    tilts = []
+    _, ident = _staged_contest(monkeypatch, truth=4, gc_of_the_others=0.50, first=[4, 5, 6], tilts=tilts)
+    assert sorted(tilts) == [(3, -8.0), (3, 8.0), (4, -8.0), (4, 8.0)]  # the leader X4 and its rival X3
+    assert ident.winner.labels == ["X4"] and ident.status == "confident"  # no tilt did better: as before
+    _, ident = _staged_contest(monkeypatch, truth=4, gc_of_the_others=0.50, first=[4, 5, 6],
+                               tilted={3: (0.61, 0.20)})
+    assert ident.winner.labels == ["X3"] and ident.status == "ambiguous"
+    assert not ident.checks["stability"]["ok"]
 
 
 def test_a_restart_that_hands_the_lead_to_the_other_leader_is_not_stable(monkeypatch):
@@ -323,10 +349,10 @@ def simulated(sample):
     return sim, xray
 
 
-def _register(sample, simulated, clicks, tmp_path, stop_hopeless=True):
+def _register(sample, simulated, clicks, cache_dir, stop_hopeless=True):
     ct, _, centroids = sample
     sim, xray = simulated
-    params = RegistrationParameters(cache_dir=str(tmp_path))
+    params = RegistrationParameters(cache_dir=cache_dir)
     params.identify.stop_hopeless = stop_hopeless
     result = CarmRegLogic().register(ct, centroids, xray, clicks, params)
     fitted = {lv["label"] for lv in result.levels if lv["fitted"]}
@@ -338,15 +364,15 @@ SHUFFLED = [2, 0, 1]  # the click order must not matter
 
 
 @pytest.fixture(scope="module")
-def unnamed(sample, simulated, tmp_path_factory):
+def unnamed(sample, simulated, drr_cache_dir):
     """The simulated case registered with its clicks unnamed, shuffled; hopeless refinements stopped (default)."""
     clicks = Landmarks2D([None] * 3, simulated[0].clicks.uv_px[SHUFFLED])
-    return _register(sample, simulated, clicks, tmp_path_factory.mktemp("unnamed"))
+    return _register(sample, simulated, clicks, drr_cache_dir)
 
 
 @pytest.mark.slow
 def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refinements_give_it(sample, simulated,
-                                                                                            unnamed, tmp_path,
+                                                                                            unnamed, drr_cache_dir,
                                                                                             monkeypatch):
     """On this case nothing is hopeless at the product's allowance (2 x the largest improvement seen + 0.05; the
     appearance benchmark's A/B runs are in the README); at the largest improvement seen alone, several labellings
@@ -358,7 +384,7 @@ def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refineme
     assert not any(h["stopped_at_evaluations"] for h in full.hypotheses)
     monkeypatch.setattr(early_stop, "SAFETY", 1.0)
     monkeypatch.setattr(early_stop, "SLACK", 0.0)
-    check = _register(sample, simulated, clicks, tmp_path)[0].level_check
+    check = _register(sample, simulated, clicks, drr_cache_dir)[0].level_check
     assert (check.status, check.assigned_labels, check.winner_labels, check.runner_up_labels) == \
         (full.status, full.assigned_labels, full.winner_labels, full.runner_up_labels)
     assert check.margin == full.margin and check.checks == full.checks
@@ -385,7 +411,7 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(simulated, unna
     assert result.ok and score["all_named_correctly"]
     assert np.median(score["unfitted_pde_pose_mm"]) < 3.0, score["levels"]
     registered = [h for h in check.hypotheses if h["refined"]]
-    assert max(h["starts"] for h in registered) == 2  # the leading two confirmed from each other's pose
+    assert max(h["starts"] for h in registered) == 4  # the leading two: from each other's pose, then tilted -+8
     for h in registered:  # each start's curve ends at its score: whether it was still improving can be read off
         assert len(h["start_curves"]) == h["starts"] == len(h["start_scores"])
         for curve, end in zip(h["start_curves"], h["start_scores"], strict=True):
@@ -394,10 +420,10 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(simulated, unna
 
 
 @pytest.mark.slow
-def test_names_one_level_off_are_never_reported_confident(sample, simulated, tmp_path):
+def test_names_one_level_off_are_never_reported_confident(sample, simulated, drr_cache_dir):
     sim, _ = simulated
     wrong = Landmarks2D(shifted_labels(sim.clicks.labels, 1, sample[2].labels), sim.clicks.uv_px)
-    result, _ = _register(sample, simulated, wrong, tmp_path)
+    result, _ = _register(sample, simulated, wrong, drr_cache_dir)
     check = result.level_check
     assert check.mode == "named" and check.status in ("contradicted", "ambiguous"), check
     assert check.winner_labels == list(sim.clicks.labels)
@@ -406,8 +432,8 @@ def test_names_one_level_off_are_never_reported_confident(sample, simulated, tmp
 
 
 @pytest.mark.slow
-def test_without_clicks_the_image_alone_names_the_levels_in_view(sample, simulated, tmp_path):
-    result, score = _register(sample, simulated, Landmarks2D([], np.zeros((0, 2))), tmp_path)
+def test_without_clicks_the_image_alone_names_the_levels_in_view(sample, simulated, drr_cache_dir):
+    result, score = _register(sample, simulated, Landmarks2D([], np.zeros((0, 2))), drr_cache_dir)
     check = result.level_check
     assert check.mode == "image_only" and check.assigned_labels == []
     assert set(simulated[0].clicks.labels) <= set(check.visible_labels)

@@ -13,9 +13,9 @@ from carmreg.logic.registration.click_orientation import MIRROR
 
 
 @pytest.fixture(scope="module")
-def clicked_case(tmp_path_factory):
+def clicked_case(tmp_path_factory, drr_cache_dir):
     """``registered(case, variant)`` with the case's unnamed clicks (``appearance_case_registrar``)."""
-    return appearance_case_registrar(tmp_path_factory, "orientation-again-cache", with_clicks=True)
+    return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
 
 
 def _judged(a) -> list:

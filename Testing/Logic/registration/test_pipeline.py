@@ -40,11 +40,6 @@ def sample(sample_ct):
     return sample_ct
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("drr-cache"))
-
-
 def _simulated(sample, seed):
     ct, labels, centroids = sample
     rng = np.random.default_rng(500 + seed)
@@ -57,11 +52,27 @@ def _simulated(sample, seed):
     return sim, xray
 
 
+@pytest.fixture(scope="module")
+def registered(sample, drr_cache_dir):
+    """``registered(seed)``: (the simulated case of ``seed`` (``_simulated``), its registration), each seed registered
+    once in the module."""
+    done = {}
+
+    def register(seed: int):
+        if seed not in done:
+            ct, _, centroids = sample
+            sim, xray = _simulated(sample, seed)
+            done[seed] = sim, CarmRegLogic().register(ct, centroids, xray, sim.clicks,
+                                                      RegistrationParameters(cache_dir=drr_cache_dir))
+        return done[seed]
+
+    return register
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_unfitted_levels_land_within_5_mm_and_are_named_correctly(sample, cache, seed):
+def test_unfitted_levels_land_within_5_mm_and_are_named_correctly(sample, registered, seed):
     ct, _, centroids = sample
-    sim, xray = _simulated(sample, seed)
-    result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    sim, result = registered(seed)
     score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels),
                      shown=result.geometry.intrinsics.distortion.distort)
     unfitted = [r for r in score["levels"] if not r["fitted"]]
@@ -74,7 +85,7 @@ def test_unfitted_levels_land_within_5_mm_and_are_named_correctly(sample, cache,
     assert mpde["fine"] < 3.0
 
 
-def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose_does(sample, cache):
+def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose_does(sample, drr_cache_dir):
     """An intensifier image with 8 mm of pincushion at its rim (no S-distortion), registered with its calibration
     (``distortion_mm`` = the simulator's k 100^3): the levels not clicked land within 1.5 mm of the true pose's
     projections (this case with a pinhole camera: 3.4 mm), and the result gives levels and clicks where the X-ray
@@ -83,7 +94,7 @@ def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose
     sim, geometry = intensifier_case(sample)
     intr = dataclasses.replace(geometry.intrinsics, distortion_mm=sim.distortion.k_per_mm2 * 100.0**3)
     xray = XrayImage(sim.pixels.astype(np.float32), intr, geometry.sod_mm, True, "sim-2")
-    result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    result = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     score = evaluate(result.projection_matrix, centroids.as_dict(), sim.ground_truth(), set(sim.clicks.labels),
                      shown=result.geometry.intrinsics.distortion.distort)
     assert result.ok and result.level_check.status == "confident", result.warnings
@@ -99,39 +110,40 @@ def test_a_calibrated_pincushion_puts_the_levels_not_clicked_where_the_true_pose
     np.testing.assert_allclose([clicked[lb] for lb in sim.clicks.labels], sim.clicks.uv_px, atol=1e-6)
 
 
-def test_same_inputs_same_result_bit_for_bit(sample, cache):
+def test_same_inputs_same_result_bit_for_bit(sample, drr_cache_dir, registered):
+    """The same case registered again, from its inputs made again, by another logic object."""
     ct, _, centroids = sample
+    _, a = registered(0)
     sim, xray = _simulated(sample, 0)
-    a = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
-    b = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    b = CarmRegLogic().register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     assert np.array_equal(a.projection_matrix, b.projection_matrix)
     assert np.array_equal(a.drr_line_integral, b.drr_line_integral)
 
 
-def test_database_is_cached_and_keyed_on_geometry(sample, cache):
+def test_database_is_cached_and_keyed_on_geometry(sample, drr_cache_dir):
     ct, _, centroids = sample
     sim, xray = _simulated(sample, 1)
     logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     logic.run_stage(state, "database")
     assert state.database.from_cache  # built by the earlier tests on the same CT and detector
     xray.sod_mm = xray.sod_mm + 50.0  # another nominal geometry: another key, rebuilt
-    other = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    other = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     other.parameters.tz_half_range_mm = 10.0  # keep the rebuild small
     logic.run_stage(other, "database")
     assert other.database.key != state.database.key and not other.database.from_cache
 
 
-def test_cancel_stops_the_pipeline(sample, cache):
+def test_cancel_stops_the_pipeline(sample, drr_cache_dir):
     ct, _, centroids = sample
     sim, xray = _simulated(sample, 2)
     logic = CarmRegLogic()
     logic.progress = lambda stage, fraction, message: logic.cancel() if stage == "depth" else None
     with pytest.raises(CancelledError):
-        logic.register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+        logic.register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
 
 
-def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path):
+def test_shipped_sample_case_end_to_end(sample_case_dir, sample, drr_cache_dir, tmp_path):
     ct, _, centroids = sample
     from carmreg.logic.io.landmarks import read_landmarks_2d
 
@@ -139,7 +151,7 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
     clicks = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")
     progress = []
     logic = CarmRegLogic(progress=lambda stage, fraction, message: progress.append((stage, fraction)))
-    result = logic.register(ct, centroids, xray, clicks, RegistrationParameters(cache_dir=cache))
+    result = logic.register(ct, centroids, xray, clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     truth = json.loads((sample_case_dir / "ground_truth.json").read_text())
     score = evaluate(result.projection_matrix, centroids.as_dict(), truth, set(clicks.labels),
                      shown=result.geometry.intrinsics.distortion.distort)
@@ -170,11 +182,11 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, cache, tmp_path
         assert paths[key].stat().st_size > 0
 
 
-def test_rerunning_a_stage_forgets_the_later_ones(sample, cache):
+def test_rerunning_a_stage_forgets_the_later_ones(sample, drr_cache_dir):
     ct, _, centroids = sample
     sim, xray = _simulated(sample, 1)
     logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=cache))
+    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
     for name in STAGES:
         logic.run_stage(state, name)
     logic.run_stage(state, "fine")  # the user goes back one stage

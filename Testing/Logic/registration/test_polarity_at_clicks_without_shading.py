@@ -16,9 +16,9 @@ from carmreg.logic.image.appearance import (
 
 
 @pytest.fixture(scope="module")
-def registered(tmp_path_factory):
+def registered(tmp_path_factory, drr_cache_dir):
     """``registered(case, variant)``: (logic, the state after the spatial stage, truth) with its unnamed clicks."""
-    return appearance_case_registrar(tmp_path_factory, "clicks-shading-cache", with_clicks=True)
+    return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
 
 
 @pytest.mark.slow

@@ -14,9 +14,9 @@ from carmreg.logic.image.appearance import (
 
 
 @pytest.fixture(scope="module")
-def benchmark_case(tmp_path_factory):
+def benchmark_case(tmp_path_factory, drr_cache_dir):
     """``registered(case, variant)``: (logic, the state after the spatial stage, truth) without clicks."""
-    return appearance_case_registrar(tmp_path_factory, "shading-cache", with_clicks=False)
+    return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=False)
 
 
 @pytest.mark.slow

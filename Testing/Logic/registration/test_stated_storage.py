@@ -10,12 +10,12 @@ from carmreg.logic.image.appearance import STORAGE_FROM_FILE
 
 
 @pytest.mark.slow
-def test_a_file_stating_linear_intensity_is_converted_so_and_named_right(tmp_path_factory):
+def test_a_file_stating_linear_intensity_is_converted_so_and_named_right(tmp_path_factory, drr_cache_dir):
     """The image alone preferred the log display (GC 0.52 against 0.38 over the database): the winner then agreed
     with the image at only 0.67 and was a wrong labelling, L3-L5, kept from confidence by the orientation check alone
     (stop 33's benchmark, before). Converted as the file states, the right labelling agrees at about 0.9 and is
     confident."""
-    registered = appearance_case_registrar(tmp_path_factory, "stated-storage-cache", with_clicks=True)
+    registered = appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
     logic, state, truth = registered(131, "fp-bright-linear-mono1-dcm")
     a = state.appearance
     assert (a.polarity, a.storage, a.storage_from) == ("bone-dark", "linear-intensity", STORAGE_FROM_FILE)
