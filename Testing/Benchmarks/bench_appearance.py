@@ -49,7 +49,11 @@ from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load
 from carmreg.logic.geometry.camera import project  # noqa: E402
 from carmreg.logic.geometry.distortion import RadialDistortion  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
+from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
+from carmreg.logic.io.xray import load_xray  # noqa: E402
 from carmreg.logic.registration.labellings import shifted_labels  # noqa: E402
+from carmreg.logic.registration.pipeline import CarmRegLogic  # noqa: E402
+from carmreg.logic.registration.state import RegistrationParameters  # noqa: E402
 from carmreg.logic.resources import sample_case  # noqa: E402
 from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
 
@@ -132,6 +136,25 @@ def write_variant(scene: app.Scene, variant: app.Variant, case: int, folder: Pat
     return {"xray": xray, "truth": truth, "look": look}
 
 
+def prepared_case(maker: CaseMaker, case: int, variant_name: str, folder: Path, cache_dir: str,
+                  clicks: bool = True, names=None):
+    """(logic, state, truth): one variant of a case written to ``folder`` (``write_variant``) and prepared for an
+    in-process registration on the case's CT (no stage run yet; DRR databases cached in ``cache_dir``), with the
+    case's clicks (unnamed, or named ``names``: a list, or ``names(truth)``) or, ``clicks`` False, none. The one
+    place the benchmark's scripts and tests load a case as ``carmreg register`` would."""
+    (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
+    variant = app.VARIANTS[variant_name]
+    record = write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case, folder)
+    truth, detector = record["truth"], app.DETECTORS[variant.detector]
+    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
+    uv_px = np.asarray(truth["clicks_uv_px"] if clicks else np.zeros((0, 2)), float)
+    labels = names(truth) if callable(names) else names
+    labels = [None] * len(uv_px) if labels is None else list(labels)
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, Landmarks2D(labels, uv_px), RegistrationParameters(cache_dir=cache_dir))
+    return logic, state, truth
+
+
 def clicks_file(mode: str, truth: dict, ct_labels: list[str], folder: Path, rng) -> tuple[Path | None, list]:
     """(clicks JSON for the mode or None for no clicks, the names given)."""
     uv = truth["clicks_uv_px"]
@@ -186,8 +209,6 @@ def polarity_read(result: dict, xray: Path, detector: app.Detector) -> tuple[str
     app = result.get("appearance") if isinstance(result.get("appearance"), dict) else None
     if app and app.get("polarity") in ("bone-dark", "bone-bright"):
         return app["polarity"], "result.json appearance"
-    from carmreg.logic.io.xray import load_xray
-
     try:
         x = load_xray(xray, sdd_mm=None if xray.suffix == ".dcm" else detector.sdd_mm,
                       pixel_spacing_mm=None if xray.suffix == ".dcm" else detector.pixel_mm)

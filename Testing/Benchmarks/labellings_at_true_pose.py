@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -30,33 +29,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import appearance as app  # noqa: E402
 import bench_appearance as bench  # noqa: E402
 
 from carmreg.logic.geometry.camera import project  # noqa: E402
-from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
-from carmreg.logic.io.xray import load_xray  # noqa: E402
 from carmreg.logic.registration.image_refine import intensity_refine  # noqa: E402
 from carmreg.logic.registration.labelling_fit import restart, state_context  # noqa: E402
-from carmreg.logic.registration.pipeline import CarmRegLogic  # noqa: E402
-from carmreg.logic.registration.state import RegistrationParameters  # noqa: E402
 
 POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
 def contest_state(folder: Path, cache_dir: str):
-    """(logic, the state after the levels stage, truth) of a benchmark case folder, its clicks unnamed."""
-    truth = json.loads((folder / "truth.json").read_text())
+    """(logic, the state after the levels stage, truth) of a benchmark case folder (``caseNNN/<variant>``,
+    written again there), its clicks unnamed."""
     case = int(folder.parent.name.removeprefix("case"))
-    maker = bench.CaseMaker(second_ct=True)
-    (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
-    detector = app.DETECTORS[app.VARIANTS[folder.name].detector]
-    xray_path = next(p for p in folder.iterdir() if p.stem == "xray")
-    xray = load_xray(xray_path, sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-    uv_px = np.asarray(truth["clicks_uv_px"], float)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv_px), uv_px),
-                          RegistrationParameters(cache_dir=cache_dir))
+    logic, state, truth = bench.prepared_case(bench.CaseMaker(second_ct=True), case, folder.name, folder, cache_dir)
     for stage in ("database", "spatial", "levels"):
         logic.run_stage(state, stage)
     return logic, state, truth

@@ -34,13 +34,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import appearance as app  # noqa: E402
 import bench_appearance as bench  # noqa: E402
 
-from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
-from carmreg.logic.io.xray import load_xray  # noqa: E402
 from carmreg.logic.registration.pipeline import CarmRegLogic  # noqa: E402
-from carmreg.logic.registration.state import RegistrationParameters  # noqa: E402
 from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
 
 SEEDS = (2, 3)
@@ -65,20 +61,12 @@ def recorded_refinements(record: list, score):
 
 def run_case(maker: bench.CaseMaker, case: int, vname: str, cache_dir: str) -> dict:
     """One case and variant, named clicks: the refine stage's profile and the seeds' re-runs (module docstring)."""
-    (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
-    variant = app.VARIANTS[vname]
-    record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case,
-                                 Path(tempfile.mkdtemp()))
-    truth, det = record["truth"], app.DETECTORS[variant.detector]
-    xray = load_xray(record["xray"], sdd_mm=det.sdd_mm, pixel_spacing_mm=det.pixel_mm)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D(list(truth["clicked"]),
-                                                           np.asarray(truth["clicks_uv_px"], float)),
-                          RegistrationParameters(cache_dir=cache_dir))
+    logic, state, truth = bench.prepared_case(maker, case, vname, Path(tempfile.mkdtemp()), cache_dir,
+                                              names=lambda t: t["clicked"])
     for stage in ("database", "spatial", "levels", "depth", "fine"):
         logic.run_stage(state, stage)
     prepared = state.geometry
-    cents, clicked = centroids.as_dict(), set(truth["clicked"])
+    cents, clicked = state.ct_landmarks.as_dict(), set(truth["clicked"])
 
     def score(pose) -> list:
         return evaluate(prepared.projection_matrix(pose), cents, truth, clicked)["unfitted_pde_pose_mm"]

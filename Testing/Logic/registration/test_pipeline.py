@@ -138,7 +138,7 @@ def test_cancel_stops_the_pipeline(sample, drr_cache_dir):
     ct, _, centroids = sample
     sim, xray = _simulated(sample, 2)
     logic = CarmRegLogic()
-    logic.progress = lambda stage, fraction, message: logic.cancel() if stage == "depth" else None
+    logic.progress = lambda stage, fraction, message: logic.cancel() if stage == "spatial" else None
     with pytest.raises(CancelledError):
         logic.register(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
 
@@ -185,8 +185,9 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, drr_cache_dir, 
 def test_rerunning_a_stage_forgets_the_later_ones(sample, drr_cache_dir):
     ct, _, centroids = sample
     sim, xray = _simulated(sample, 1)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, sim.clicks, RegistrationParameters(cache_dir=drr_cache_dir))
+    logic = CarmRegLogic()  # bookkeeping only: no level check, no pincushion estimate
+    params = RegistrationParameters(cache_dir=drr_cache_dir, level_check=False, estimate_pincushion=False)
+    state = logic.prepare(ct, centroids, xray, sim.clicks, params)
     for name in STAGES:
         logic.run_stage(state, name)
     logic.run_stage(state, "fine")  # the user goes back one stage
