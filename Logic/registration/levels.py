@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from carmreg.logic.geometry.camera import CarmGeometry, project
+from carmreg.logic.geometry.camera import POSE_NAMES, CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
 from carmreg.logic.registration.agreement import measure_agreement
 from carmreg.logic.registration.early_stop import give_up_above, lower_bound
@@ -234,16 +234,17 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit]) -> bool:
 
 
 def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float) -> bool:
-    """Refit each of the leading two from its own refined pose tilted cranio-caudally (``ry``, pose index 4) by
+    """Refit each of the leading two from its own refined pose tilted cranio-caudally (``ry_deg``) by
     -``tilt_deg`` and +``tilt_deg`` (module docstring), each keeping its best refinement; True when the same
     labelling still leads."""
     ranked = _leading_two(fits)
     if not ranked:
         return True
     leader = ranked[0]
+    tilt = np.zeros(len(POSE_NAMES))
+    tilt[POSE_NAMES.index("ry_deg")] = tilt_deg
     for f in ranked:
-        starts = [f.pose + np.array([0.0, 0.0, 0.0, 0.0, sign * tilt_deg, 0.0]) for sign in (-1.0, 1.0)]
-        for start in starts:
+        for start in (f.pose - tilt, f.pose + tilt):
             refit_from(ctx, f, start)
     return _leader(fits) is leader
 

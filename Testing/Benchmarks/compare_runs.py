@@ -19,11 +19,12 @@ import numpy as np
 
 
 def runs(paths: list[Path]) -> dict:
-    """{(case, variant, mode): run} over the files (a later file's run replaces an earlier one's)."""
+    """{(case, variant, mode): run} over the files (a later file's run replaces an earlier one's), each run with
+    ``record`` = the name of the file it came from."""
     out = {}
     for path in paths:
         for run in json.loads(path.read_text())["runs"]:
-            out[(run["case"], run["variant"], run["mode"])] = run
+            out[(run["case"], run["variant"], run["mode"])] = dict(run, record=path.name)
     return out
 
 

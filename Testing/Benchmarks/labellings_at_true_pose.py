@@ -31,11 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_appearance as bench  # noqa: E402
 
-from carmreg.logic.geometry.camera import project  # noqa: E402
+from carmreg.logic.geometry.camera import POSE_NAMES, project  # noqa: E402
 from carmreg.logic.registration.image_refine import intensity_refine  # noqa: E402
 from carmreg.logic.registration.labelling_fit import restart, state_context  # noqa: E402
-
-POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
 def contest_state(folder: Path, cache_dir: str):
@@ -50,7 +48,7 @@ def contest_state(folder: Path, cache_dir: str):
 
 def report(state, truth: dict) -> list[str]:
     """One line per registered labelling (module docstring), the true one marked."""
-    pose_true = np.array([truth["pose"][k] for k in POSE_KEYS], float)
+    pose_true = np.array([truth["pose"][k] for k in POSE_NAMES], float)
     points = np.array([state.ct_landmarks.as_dict()[name] for name in truth["clicked"]])
     gap_px = np.abs(project(np.array(truth["projection_matrix"]), points)
                     - project(state.geometry.projection_matrix(pose_true), points)).max()

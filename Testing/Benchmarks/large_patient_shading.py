@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from carmreg.logic.drr.cpu import render_line_integrals, row_spans
-from carmreg.logic.geometry.camera import CarmPose
+from carmreg.logic.geometry.camera import POSE_NAMES, CarmPose
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import without_shading
 from carmreg.logic.registration import appearance_checks, image_refine, pipeline
@@ -54,7 +54,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import appearance as app  # noqa: E402  (the benchmark's own appearance chain, beside this file)
 from measure_without_shading import registered_without_clicks  # noqa: E402
 
-POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 REFINE_PIXEL_MM = RegistrationParameters().refine_coarse.detector_pixel_mm  # the image-alone refinement's pixel
 
 
@@ -136,7 +135,7 @@ def measure(folder: Path, cache_dir: str, sigma_mm: float, search: str | None, t
                               (rows, cols)) for p in ("bone-dark", "bone-bright")}
     true_polarity = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
     geometry = app.make_geometry(ct, app.DETECTORS[app.VARIANTS[folder.name].detector])
-    pose = CarmPose(*[truth["pose"][k] for k in POSE_KEYS]).as_array()
+    pose = CarmPose(*[truth["pose"][k] for k in POSE_NAMES]).as_array()
     at_truth = scores(images[true_polarity], render_line_integrals(level, geometry, pose[None], small,
                                                                    row_spans(mask)), mask, sigma_px)
     refined = {}

@@ -30,8 +30,6 @@ from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.pipeline import CarmRegLogic, ideal_clicks
 from carmreg.logic.registration.state import STAGES, RegistrationParameters
 
-POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
-
 
 def scan(folder: Path, shifts: list[float], cache_dir: str, mu_mm: float | None, pixel_mm: float | None) -> list[str]:
     """The table rows of one case folder (module docstring)."""

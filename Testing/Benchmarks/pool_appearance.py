@@ -14,7 +14,6 @@ Each pooled run records the file it came from (``record``); the file names are t
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -22,17 +21,14 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_appearance as bench  # noqa: E402
+import compare_runs  # noqa: E402
 
 
 def latest_runs(files: list[Path], first: int, last: int) -> list[dict]:
     """Every run of cases ``first``..``last`` as its last file (in ``files``' order) recorded it, sorted by (case,
     variant, mode), each with ``record`` = that file's name."""
-    runs = {}
-    for path in files:
-        for run in json.loads(path.read_text())["runs"]:
-            if first <= run["case"] <= last:
-                runs[(run["case"], run["variant"], run["mode"])] = dict(run, record=path.name)
-    return [runs[key] for key in sorted(runs)]
+    runs = compare_runs.runs(files)
+    return [runs[key] for key in sorted(runs) if first <= key[0] <= last]
 
 
 def main(argv=None) -> int:
