@@ -157,6 +157,11 @@ class CmaEs:
     def mean(self) -> np.ndarray:
         return box_transform(self._mean, self.lower, self.upper, self.al, self.au)
 
+    @property
+    def stds(self) -> np.ndarray:
+        """(n,) the distribution's standard deviation along each coordinate (genotype, the units of the pose)."""
+        return self.sigma * self.scale * np.sqrt(np.diag(self.C))
+
     def ask(self) -> np.ndarray:
         """(lambda, n) candidate poses inside the bounds."""
         if not self._decomposed:
@@ -212,7 +217,7 @@ class CmaEs:
 
     def _limit_stds(self) -> None:
         """Coordinates whose standard deviation exceeds a third of their bound range are scaled down to it."""
-        stds = self.sigma * self.scale * np.sqrt(np.diag(self.C))
+        stds = self.stds
         slack = math.exp(1e-4) if self.countiter <= 2 else 1.0
         over = stds > self.maxstd * slack
         if over.any():
@@ -224,7 +229,7 @@ class CmaEs:
             return False
         if self.countevals - 1 >= self.max_evaluations:
             return True
-        stds = self.sigma * self.scale * np.sqrt(np.diag(self.C))
+        stds = self.stds
         if np.all(stds < self.tolx) and np.all(self.sigma * self.scale * self.pc < self.tolx):
             return True
         if np.any(stds > self._scale0 * TOLFACUPX):

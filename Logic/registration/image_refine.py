@@ -65,6 +65,7 @@ class RefineResult:
     seconds: float = 0.0
     objective_end: float = float("nan")
     stopped_at: int | None = None       # evaluations after which ``give_up`` stopped it (None: ran in full)
+    rejoined_at: int | None = None      # evaluations after which ``rejoined`` stopped it (None: it did not)
     equalised_similarity: float = float("nan")  # GC at ``pose`` on the equalised X-ray (``agreement``; nan: not
     #                                             measured)
 
@@ -103,10 +104,13 @@ def _scores(p: RefineParameters, fixed: np.ndarray, fmask: np.ndarray, pixel_mm:
 
 def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndarray, xray_line_integral: np.ndarray,
                      mask: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,
-                     params: RefineParameters | None = None, should_stop=None, give_up=None) -> RefineResult:
+                     params: RefineParameters | None = None, should_stop=None, give_up=None, rejoined=None
+                     ) -> RefineResult:
     """Refine ``start_pose`` on image similarity + landmarks; see module docstring. ``give_up(evaluations,
     best_objective) -> bool``, asked after each generation, stops the search early when True (``early_stop``;
-    ``stopped_at`` records when)."""
+    ``stopped_at`` records when). ``rejoined(best_objective, mean_pose, stds) -> bool``, asked after each
+    generation with the search distribution's mean and standard deviations (pose units), stops it when True (a
+    refit back where its labelling already is: ``early_stop.rejoins``; ``rejoined_at`` records when)."""
     p = params or RefineParameters()
     t0 = time.perf_counter()
     intr = geometry.intrinsics
@@ -137,6 +141,9 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         result.convergence.append((es.countevals, best[0], best[1]))
         if give_up is not None and give_up(es.countevals, best[0]):
             result.stopped_at = int(es.countevals)
+            break
+        if rejoined is not None and rejoined(best[0], es.mean, es.stds):
+            result.rejoined_at = int(es.countevals)
             break
     result.objective_end, result.similarity_end, result.pose = best
     P = geometry.projection_matrix(result.pose)

@@ -26,6 +26,7 @@ import numpy as np
 from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.volume import MuLevel
 from carmreg.logic.registration.depth import DepthResult, depth_search
+from carmreg.logic.registration.early_stop import rejoins
 from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
 
@@ -71,6 +72,7 @@ class LabellingFit:
     starts: int = 0                         # image refinements run (starts)
     runs: list = field(default_factory=list)  # objective of each start
     curves: list = field(default_factory=list)  # per start: [(evaluations, best objective)] after each generation
+    rejoined: list = field(default_factory=list)  # evaluations after which each refit stopped back at its pose
 
     @property
     def refined(self) -> bool:
@@ -112,7 +114,8 @@ class LabellingFit:
 
     def copy(self, **changes) -> LabellingFit:
         """A copy whose later starts do not touch this one's record (``runs``, ``curves``), with ``changes``."""
-        return dataclasses.replace(self, runs=list(self.runs), curves=list(self.curves), **changes)
+        return dataclasses.replace(self, runs=list(self.runs), curves=list(self.curves), rejoined=list(self.rejoined),
+                                   **changes)
 
     def as_dict(self) -> dict:
         """For result.json; ``start_curves``: each start's best objective after each CMA-ES generation, from which
@@ -122,6 +125,7 @@ class LabellingFit:
                 "refined": self.refined,
                 "starts": self.starts, "start_scores": [float(x) for x in self.runs],
                 "stopped_at_evaluations": self.stopped_at,
+                "rejoined_at_evaluations": list(self.rejoined),
                 "start_curves": [{"evaluations": [e for e, _ in curve], "objective": [round(f, 6) for _, f in curve]}
                                  for curve in self.curves],
                 "pose": [float(x) for x in self.pose]}
@@ -167,19 +171,22 @@ def landmark_fit(ctx: FitContext, fit: LabellingFit) -> FineResult:
     return fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine, should_stop=ctx.should_stop)
 
 
-def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray) -> LabellingFit:
-    """Another start of the image refinement for a registered labelling; the better refinement is kept."""
+def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_rejoined: bool = False
+               ) -> LabellingFit:
+    """Another start of the image refinement for a labelling; the better refinement is kept. ``stop_rejoined``:
+    stopped once it has settled back where the registered labelling already is (``early_stop.rejoins``)."""
     if ctx.on_labelling is not None:
         ctx.on_labelling(list(fit.labels))
-    return _refine_from(ctx, fit, np.asarray(start_pose, float))
+    settled = rejoins(fit.pose, fit.score, ctx.refine.sigma) if stop_rejoined and fit.refined else None
+    return _refine_from(ctx, fit, np.asarray(start_pose, float), rejoined=settled)
 
 
-def restart(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+def restart(ctx: FitContext, fit: LabellingFit, stop_rejoined: bool = False) -> LabellingFit:
     """A fresh image refinement of a registered labelling from its own refined pose: the refinement's full step
     sizes and the next seed (another random stream), so it can leave the basin its earlier search settled in; the
-    better refinement is kept."""
+    better refinement is kept (``stop_rejoined`` as for ``refit_from``)."""
     fresh = dataclasses.replace(ctx, refine=dataclasses.replace(ctx.refine, seed=ctx.refine.seed + 1))
-    return refit_from(fresh, fit, fit.pose.copy())
+    return refit_from(fresh, fit, fit.pose.copy(), stop_rejoined)
 
 
 def state_context(state, line_integral: np.ndarray, ty_mm: float, tz_mm: float, should_stop,
@@ -203,10 +210,13 @@ def unlabelled_fit(ctx: FitContext, start_pose: np.ndarray, shift: int = 0) -> L
     return refit_from(ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start_pose)
 
 
-def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, give_up=None) -> LabellingFit:
+def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, give_up=None, rejoined=None
+                 ) -> LabellingFit:
     r = intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm,
-                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop, give_up=give_up)
+                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop, give_up=give_up, rejoined=rejoined)
     fit.starts += 1
+    if r.rejoined_at is not None:
+        fit.rejoined.append(r.rejoined_at)
     fit.runs.append(float(r.objective_end))
     fit.curves.append([(int(evaluations), float(best)) for evaluations, best, _ in r.convergence])
     if fit.refine is None or r.objective_end < fit.refine.objective_end:

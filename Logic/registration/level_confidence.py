@@ -16,8 +16,9 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
      clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
      clicks must fit the winner itself (seen: labellings five levels off won at 6 mm);
-   - stability: the leading two labellings were refitted, each from the other's pose (and, when the leader
-     explained the image poorly, restarted afresh: ``levels._restart_leaders``), and the same one led;
+   - stability: the leading two labellings were refitted, each from the other's pose, from their own tilted about L
+     and restarted afresh (``levels._confirm_leaders``, ``_tilt_leaders``, ``_restart_leaders``), and the same one
+     led;
    - appearance: the X-ray's polarity was clear (or set by the user and not contradicted; a file stating its
      polarity and an image disagreeing is a conflict) and it matches the CT best as stored by a clear lead, not
      mirrored or turned (``image.appearance.trusted_appearance``).

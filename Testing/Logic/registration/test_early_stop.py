@@ -1,14 +1,31 @@
 """Stopping hopeless labelling refinements (``early_stop``): the allowance table, a stopped search being the full
-one cut short, and the levels contest giving the verdict full refinements give."""
+one cut short, and the levels contest giving the verdict full refinements give; refits stopped once back at
+their labelling's pose (``rejoins``)."""
 
 import numpy as np
 import pytest
 
 from carmreg.logic.drr.cpu import render_line_integrals
-from carmreg.logic.registration.early_stop import SAFETY, SLACK, STILL_TO_COME, allowance, give_up_above, lower_bound
+from carmreg.logic.registration.early_stop import (
+    REJOIN_DISTANCE,
+    REJOIN_GAIN,
+    REJOIN_SPREAD,
+    SAFETY,
+    SLACK,
+    STILL_TO_COME,
+    allowance,
+    give_up_above,
+    lower_bound,
+    rejoins,
+)
 from carmreg.logic.registration.fine import FineParameters, FineResult
 from carmreg.logic.registration.image_refine import RefineResult, intensity_refine
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, coarse_refine_parameters
+from carmreg.logic.registration.labelling_fit import (
+    FitContext,
+    LabellingFit,
+    coarse_refine_parameters,
+    refit_from,
+)
 from carmreg.logic.registration.levels import _rival_score, _settle
 
 
@@ -64,3 +81,55 @@ def test_a_stopped_labelling_is_completed_only_when_it_could_still_end_ahead_of_
     named = [_scored_fit(0.6, None), _scored_fit(0.2, None), _scored_fit(0.2 + allowance(480) - 0.01, 480)]
     _settle(ctx, named, 0)  # the names (0.6) are the reference, their rival the best other (0.2)
     assert named[2].stopped_at is None
+
+
+def test_a_refit_has_rejoined_only_when_contracted_onto_the_labelling_s_pose_without_bettering_its_score():
+    steps = np.array([20.0, 4.0, 4.0, 4.0, 5.0, 5.0])
+    pose = np.array([10.0, 2.0, -3.0, 1.0, 0.0, 2.0])
+    settled = rejoins(pose, 0.40, steps)
+    near, tight = pose + 0.9 * REJOIN_DISTANCE * steps, 0.9 * REJOIN_SPREAD * steps
+    assert settled(0.41, near, tight) and settled(0.40 - 0.9 * REJOIN_GAIN, near, tight)
+    assert not settled(0.40 - 1.1 * REJOIN_GAIN, near, tight)       # it found better: let it finish
+    wide = tight.copy()
+    wide[4] = 1.1 * REJOIN_SPREAD * steps[4]
+    assert not settled(0.41, near, wide)                             # one coordinate still searching
+    away = near.copy()
+    away[0] = pose[0] + 1.1 * REJOIN_DISTANCE * steps[0]
+    assert not settled(0.41, away, tight)                            # contracted elsewhere: another basin
+
+
+def _three_bars():
+    """A 24^3 CT (4 mm voxels) of three bone bars along the three axes and a denser block, on a 24 x 24 px
+    detector: small, and unlike a single bar, every pose parameter shows in its DRR (mu level, geometry)."""
+    from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
+    from carmreg.logic.geometry.volume import MuPyramid, Volume
+
+    hu = np.full((24, 24, 24), -1000, np.int16)
+    hu[8:12, 8:12, 2:22] = 1000
+    hu[4:20, 14:17, 6:9] = 1000
+    hu[14:17, 2:20, 15:18] = 1000
+    hu[5:8, 5:8, 17:20] = 1500
+    volume = Volume(hu, np.diag([4.0, 4.0, 4.0, 1.0]), "three bars")
+    geometry = CarmGeometry(CarmIntrinsics(1000.0, (4.0, 4.0), (24, 24)), tuple(volume.center_lps_mm()), 600.0)
+    return MuPyramid(volume).level(None), geometry
+
+
+def test_a_refit_from_a_tilted_pose_stops_once_back_at_the_registered_pose_and_the_better_refinement_is_kept():
+    level, geometry = _three_bars()
+    truth = np.array([0.0, 2.0, -3.0, 0.0, 4.0, 0.0])
+    image = render_line_integrals(level, geometry, truth)
+    ctx = FitContext(level, geometry, image, np.ones(image.shape, bool), 0.0, 0.0, FineParameters(),
+                     coarse_refine_parameters())
+    fit = LabellingFit([], 0, np.zeros((0, 3)), np.zeros((0, 2)))
+    refit_from(ctx, fit, truth + np.array([10.0, 3.0, 2.0, 2.0, -3.0, 2.0]), stop_rejoined=True)
+    assert fit.rejoined == [] and fit.refine.evaluations > 800  # its first registration: nothing to rejoin
+    registered = fit.refine
+    tilt = np.array([0.0, 0.0, 0.0, 0.0, 6.0, 0.0])
+    full = refit_from(ctx, fit.copy(), fit.pose + tilt)          # the same refit, run to its end
+    cut = refit_from(ctx, fit.copy(), fit.pose + tilt, stop_rejoined=True)
+    assert full.rejoined == [] and len(cut.rejoined) == 1 and cut.rejoined[0] <= 700 < full.curves[-1][-1][0]
+    assert cut.curves[-1] == full.curves[-1][:len(cut.curves[-1])]  # the same search, cut short
+    assert cut.runs[-1] >= full.runs[-1] and cut.runs[-1] >= registered.objective_end - REJOIN_GAIN
+    assert cut.refine is registered and cut.stopped_at is None    # still the registration, not "hopeless"
+    elsewhere = refit_from(ctx, fit.copy(), fit.pose - tilt, stop_rejoined=True)  # settles in another basin
+    assert elsewhere.rejoined == [] and elsewhere.curves[-1][-1][0] > 800 and elsewhere.runs[-1] > 0.01
