@@ -40,7 +40,8 @@ end, as does one contracting elsewhere; a labelling's first registration is neve
 is the polish the rest of the search would have added. Chosen on the appearance benchmark's tune half 192-202
 (stop 41: every refit run in full with its search recorded, 1440 refits of 180 clicked runs; spread and distance
 0.1-0.3, gain 0-0.01 tried): the setting that saves most (33 % of the refits' evaluations, 906 refits stopped)
-among those that forfeit at most 0.003 of a score; wider ones forfeit up to 0.008.
+among those that forfeit at most 0.003 of a score; wider ones forfeit up to 0.008
+(``Testing/Benchmarks/rejoin_traces.py --load Testing/Benchmarks/results_rejoin_traces_s41.json``).
 """
 
 from __future__ import annotations

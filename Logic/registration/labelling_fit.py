@@ -113,7 +113,8 @@ class LabellingFit:
         return float(self.refine.mpde_mm) if self.refine is not None else float("nan")
 
     def copy(self, **changes) -> LabellingFit:
-        """A copy whose later starts do not touch this one's record (``runs``, ``curves``), with ``changes``."""
+        """A copy whose later starts do not touch this one's record (``runs``, ``curves``, ``rejoined``), with
+        ``changes``."""
         return dataclasses.replace(self, runs=list(self.runs), curves=list(self.curves), rejoined=list(self.rejoined),
                                    **changes)
 
