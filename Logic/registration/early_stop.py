@@ -91,7 +91,7 @@ REJOIN_GAIN = 0.01
 def rejoins(pose, score: float, first_steps):
     """``rejoined(best_objective, mean_pose, stds) -> bool`` for ``image_refine.intensity_refine``: True once a refit
     of a labelling registered at ``pose`` with ``score`` (another start: ``labelling_fit.refit_from``) has
-    settled back in that registration's basin, where it can only end at that score::
+    settled back in that registration's basin, where the rest of its search could only polish that pose::
 
         stds_k <= REJOIN_SPREAD * s_k   and   |mean_k - pose_k| <= REJOIN_DISTANCE * s_k   for every k,
         best >= score - REJOIN_GAIN
