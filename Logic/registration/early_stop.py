@@ -88,20 +88,21 @@ REJOIN_GAIN = 0.01
 """... without having bettered the labelling's score by more than this."""
 
 
-def rejoins(pose, score: float, first_steps):
+def rejoins(pose, score: float, first_steps, spread: float = REJOIN_SPREAD, distance: float = REJOIN_DISTANCE,
+            gain: float = REJOIN_GAIN):
     """``rejoined(best_objective, mean_pose, stds) -> bool`` for ``image_refine.intensity_refine``: True once a refit
     of a labelling registered at ``pose`` with ``score`` (another start: ``labelling_fit.refit_from``) has
     settled back in that registration's basin, where the rest of its search could only polish that pose::
 
-        stds_k <= REJOIN_SPREAD * s_k   and   |mean_k - pose_k| <= REJOIN_DISTANCE * s_k   for every k,
-        best >= score - REJOIN_GAIN
+        stds_k <= spread * s_k   and   |mean_k - pose_k| <= distance * s_k   for every k,   best >= score - gain
 
-    ``s`` the refinement's first steps (``first_steps``; mm and degrees, pose order). A refit is asked for the pose
-    it might find elsewhere (a tilt, a rival's pose, a fresh search); one that has contracted onto the pose the
-    labelling already has ends there (module docstring, stop 41's figures)."""
+    ``s`` the refinement's first steps (``first_steps``; mm and degrees, pose order); ``spread``, ``distance``,
+    ``gain`` the product's ``REJOIN_*`` unless a benchmark tries others (``rejoin_traces.py``). A refit is asked for
+    the pose it might find elsewhere (a tilt, a rival's pose, a fresh search); one that has contracted onto the pose
+    the labelling already has ends there (module docstring, stop 41's figures)."""
     pose, steps = np.asarray(pose, float), np.asarray(first_steps, float)
 
     def settled(best: float, mean: np.ndarray, stds: np.ndarray) -> bool:
-        return bool(best >= score - REJOIN_GAIN and np.all(stds <= REJOIN_SPREAD * steps)
-                    and np.all(np.abs(np.asarray(mean) - pose) <= REJOIN_DISTANCE * steps))
+        return bool(best >= score - gain and np.all(np.asarray(stds) <= spread * steps)
+                    and np.all(np.abs(np.asarray(mean) - pose) <= distance * steps))
     return settled

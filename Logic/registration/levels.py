@@ -38,11 +38,11 @@ degrees off and the other levels 4-9 mm off; restarted, 0.75-1.39 mm); until sto
 floor or beyond the cap was restarted. A lead that changes hands there is not stable either.
 
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
-the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): it
-could only end where the labelling already is. Stop 41, on the appearance benchmark's tune half 192-202 with every
-refit run in full and its search recorded (1440 refits of 180 clicked runs): the rule stops 906 of them and saves
-33 % of their evaluations (from the other's pose 10 %, tilted 35-40 %, restarted 47 %), forfeiting at most 0.003
-of a score (the confidence rule's margin is 0.02).
+the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
+rest of its search could only polish the pose the labelling already has. Stop 41, on the appearance benchmark's
+tune half 192-202 with every refit run in full and its search recorded (1440 refits of 180 clicked runs): the rule
+stops 906 of them and saves 33 % of their evaluations (from the other's pose 10 %, tilted 35-40 %, restarted
+47 %), forfeiting at most 0.003 of a score (the confidence rule's margin is 0.02).
 
 The X-ray's appearance (polarity, orientation) was judged before the contest, at the poses of its most plausible
 labellings (``click_polarity``, ``click_orientation``). Whenever the verdict would stand on the appearance and the

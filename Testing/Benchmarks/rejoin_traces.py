@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from carmreg.logic.registration.early_stop import REJOIN_DISTANCE, REJOIN_GAIN, REJOIN_SPREAD, rejoins
+
 SPREADS = (0.1, 0.2, 0.3)
 DISTANCES = (0.1, 0.2, 0.3)
 GAINS = (0.0, 0.01)
@@ -54,9 +56,12 @@ def extract(work: Path) -> list[dict]:
 
 
 def first_stop(refit: dict, spread: float, distance: float, gain: float) -> tuple[int, float] | None:
-    """(evaluations, best) at the first generation where the rule holds (``early_stop.rejoins``), or None."""
+    """(evaluations, best) at the first generation where the product's rule holds (``early_stop.rejoins`` at these
+    thresholds), or None. The extract keeps each generation's largest coordinate in units of the first steps, so the
+    rule is asked about one coordinate at the pose 0 with a unit step: d <= distance and w <= spread."""
+    settled = rejoins(np.zeros(1), refit["s0"], np.ones(1), spread, distance, gain)
     for e, best, d, w in refit["gens"]:
-        if w <= spread and d <= distance and best >= refit["s0"] - gain:
+        if settled(best, [d], [w]):
             return e, best
     return None
 
@@ -99,8 +104,6 @@ def main() -> None:
         a.save.write_text(json.dumps({"refits": refits}, separators=(",", ":")))
     table(refits)
     print("the product's setting, by kind of refit:")
-    from carmreg.logic.registration.early_stop import REJOIN_DISTANCE, REJOIN_GAIN, REJOIN_SPREAD
-
     by_kind(refits, REJOIN_SPREAD, REJOIN_DISTANCE, REJOIN_GAIN)
 
 
