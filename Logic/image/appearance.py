@@ -140,7 +140,7 @@ user's polarity the image clearly contradicts, keeps any level answer from being
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -283,6 +283,21 @@ class Appearance:
         self.decided_by, self.image_polarity = again.decided_by, again.image_polarity
         self.note = f"{again.note}; confirmed with {evidence} judged too (a lead of {threshold_gc} needed there)"
         self.scores["refined"] = again.scores.get("refined")
+
+    def other_polarity(self, dark_storage: str, orientation_scores: dict) -> Appearance:
+        """A copy under the other polarity, never clear: a bone-dark image converted with ``dark_storage``, the
+        database's orientation verdict from ``orientation_scores`` measured under that polarity. The levels contest
+        runs on it when, under this unclear polarity, its best labelling explained the image poorly
+        (``AppearanceChecks.contest_under_other_polarity``); only its winner judged at the clicks can make it clear
+        (``with_winner``)."""
+        polarity = next(k for k in POLARITIES if k != self.polarity)
+        other = replace(self, polarity=polarity, storage=dark_storage if polarity == "bone-dark" else "log-display",
+                        clear=False, scores={k: v for k, v in self.scores.items() if k != "at_clicks_with_winner"},
+                        orientation_at_clicks=None, orientation_decided_by="image (database)",
+                        note=(f"{polarity}, tried because as {self.polarity} (unclear) the best labelling of the "
+                              "clicks explained the image poorly; not clear"))
+        other.set_orientation(orientation_scores)
+        return other
 
     def set_storage(self, gc_by_storage: dict, stated: str | None = None) -> None:
         """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the one the file

@@ -49,7 +49,10 @@ labellings (``click_polarity``, ``click_orientation``). Whenever the verdict wou
 contest's winner was not among them, the pipeline judges the appearance again with the winner too
 (``judge_appearance``): when it was unclear (seen: the chest case above, right but ambiguous in 8 of 8 runs because
 its polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine), and when it
-was trusted, so that no confident answer names a labelling whose display orientation was never judged.
+was trusted, so that no confident answer names a labelling whose display orientation was never judged. When the
+appearance stayed unclear and even the winner explains the image poorly, the pipeline runs the whole contest again
+on the image converted as the other polarity, and keeps it only when its winner confirms that polarity
+(``AppearanceChecks.contest_under_other_polarity``; stop 42, report case 205).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
 challenges the best with its pose moved one level up and down; the answer is only ever **proposed**.
@@ -215,10 +218,11 @@ def _settle(ctx: FitContext, fits: list[LabellingFit], keep: int | None) -> None
         complete(ctx, min(todo, key=lambda f: lower_bound(f.score, f.stopped_at)))
 
 
-def _explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
+def explains_the_image(fit: LabellingFit, rule: ConfidenceRule) -> bool:
     """The labelling passes the confidence rule's absolute checks on its own: image agreement at the floor, clicks
     fitted within the cap (``level_confidence.check_results`` without a rival). The agreement is the GC the contest
-    runs on (not ``agreement``'s second opinion): this decides only whether to search wider, and a wider search is
+    runs on (not ``agreement``'s second opinion): this decides only whether to search wider (every labelling, or
+    the contest again under the other polarity: ``AppearanceChecks.worth_other_polarity``), and a wider search is
     never wrong."""
     checks, _ = check_results(dataclasses.replace(Evidence.of(fit, None, True, True), gc=fit.similarity), rule)
     return checks["image_agreement"]["ok"] and checks.get("landmark_fit", {"ok": True})["ok"]
@@ -327,7 +331,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     keep, stop = plan.given_index, p.stop_hopeless
     _contest(ctx, fits, plan.first, keep, stop)
     best = _leader(fits)
-    if plan.given_index is None and not _explains_the_image(best, p.rule):
+    if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
     stable = True

@@ -52,9 +52,14 @@ from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
 from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.image_starts import image_starts
-from carmreg.logic.registration.labelling_fit import state_context, unshaded_context
+from carmreg.logic.registration.labelling_fit import FitContext, state_context, unshaded_context
 from carmreg.logic.registration.labellings import ct_level_names
-from carmreg.logic.registration.levels import IdentifyParameters, identify_from_image, identify_levels
+from carmreg.logic.registration.levels import (
+    IdentifyParameters,
+    LevelIdentification,
+    identify_from_image,
+    identify_levels,
+)
 from carmreg.logic.registration.outcome import build_result
 from carmreg.logic.registration.pincushion import (
     UNCORRECTED_INTENSIFIER,
@@ -296,27 +301,19 @@ class CarmRegLogic:
         state.pairs = state.given_pairs
         if clicks.named and len(clicks.labels) and not p.level_check:
             return {"enabled": False}
-        ctx = state_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm,
-                            self._check_cancel, self._labelling_progress(len(clicks.labels), clicks.named,
-                                                                         len(ct_level_names(state.ct_landmarks)),
-                                                                         p.identify))
-        bone_dark = state.appearance.bone_dark if state.appearance is not None else state.xray.bone_dark
-        ctx.xray_equalised = attenuation(state.xray.pixels, state.mask, bone_dark, EQUALISED)  # ``agreement``
-        appearance_clear = state.appearance is None or state.appearance.trusted
         if len(clicks.labels) == 0:
+            ctx = self._levels_context(state)
             checked = state.image_polarity
             if checked is not None and checked.without_shading_mm > 0:  # the second opinion's polarity: its way
                 ctx = unshaded_context(ctx, checked.without_shading_mm)
             reuse = checked.pairs(state.appearance.polarity) if checked else ()
             ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
-                                        appearance_clear, registered=reuse)
+                                        state.appearance is None or state.appearance.trusted, registered=reuse)
         else:
-            def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
-                return self._appearance.with_winner(state, winner)
-
-            ident = identify_levels(ctx, state.ct_landmarks, clicks, p.identify, appearance_clear,
-                                    registered=self._registered_at_clicks(state),
-                                    judge_appearance=None if state.appearance is None else judge)
+            ident = self._contest_at_clicks(state)
+            if self._appearance.worth_other_polarity(state, ident.winner):
+                ident = self._appearance.contest_under_other_polarity(state, ident,
+                                                                       lambda: self._contest_at_clicks(state))
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -326,6 +323,32 @@ class CarmRegLogic:
             state.warnings.append(ident.message)
         # the answer itself is the result's level_check (result.json "level_check"), not repeated here
         return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits)}
+
+    def _levels_context(self, state: RegistrationState) -> FitContext:
+        """Where the levels stage registers: the X-ray's attenuation image as converted by the appearance in use, its
+        equalised image for ``agreement``, from the spatial stage's offsets, with the stage's progress hook."""
+        clicks, p = state.xray_landmarks, state.parameters
+        ctx = state_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm,
+                            self._check_cancel, self._labelling_progress(len(clicks.labels), clicks.named,
+                                                                         len(ct_level_names(state.ct_landmarks)),
+                                                                         p.identify))
+        bone_dark = state.appearance.bone_dark if state.appearance is not None else state.xray.bone_dark
+        ctx.xray_equalised = attenuation(state.xray.pixels, state.mask, bone_dark, EQUALISED)  # ``agreement``
+        return ctx
+
+    def _contest_at_clicks(self, state: RegistrationState) -> LevelIdentification:
+        """The contest between the clicks' labellings (``identify_levels``) on the X-ray as converted by the
+        appearance in use, reusing the polarity check's registrations under it, with the contest's winner judged
+        by the appearance checks (``AppearanceChecks.with_winner``)."""
+        a = state.appearance
+
+        def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
+            return self._appearance.with_winner(state, winner)
+
+        return identify_levels(self._levels_context(state), state.ct_landmarks, state.xray_landmarks,
+                               state.parameters.identify, a is None or a.trusted,
+                               registered=self._registered_at_clicks(state),
+                               judge_appearance=None if a is None else judge)
 
     @staticmethod
     def _image_starts(state: RegistrationState) -> list:
