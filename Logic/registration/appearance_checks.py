@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
@@ -84,7 +85,7 @@ from carmreg.logic.registration.labelling_fit import (
     state_context,
     unshaded_context,
 )
-from carmreg.logic.registration.levels import explains_the_image, plan_contest
+from carmreg.logic.registration.levels import LevelIdentification, explains_the_image, plan_contest
 from carmreg.logic.registration.preflight import MIN_CLICKS
 from carmreg.logic.registration.spatial import spatial_search
 from carmreg.logic.registration.state import RegistrationState
@@ -115,7 +116,7 @@ def _judged(winner: LabellingFit, labellings: list) -> bool:
     return list(winner.labels) in [list(lb) for lb in labellings]
 
 
-def _contest_record(polarity: str, ident) -> dict:
+def _contest_record(polarity: str, ident: LevelIdentification) -> dict:
     """A levels contest in ``scores["contest_under_other_polarity"]``: the polarity it ran under, its winner, the
     winner's GC and its status."""
     return {"polarity": polarity, "winner": list(ident.winner.labels), "gc": float(ident.winner.similarity),
@@ -406,7 +407,8 @@ class AppearanceChecks:
                 and not state.xray.polarity_stated and a.orientation == "as-stored"
                 and not explains_the_image(winner, p.identify.rule))
 
-    def contest_under_other_polarity(self, state: RegistrationState, first, contest):
+    def contest_under_other_polarity(self, state: RegistrationState, first: LevelIdentification,
+                                     contest: Callable[[], LevelIdentification]) -> LevelIdentification:
         """The levels contest run again (``contest() -> LevelIdentification``) on the X-ray converted as the other
         polarity (``Appearance.other_polarity``, never clear): its answer and that appearance are taken only when
         the appearance is then trusted, i.e. its winner, judged at the clicks under both polarities as the leaders
