@@ -395,17 +395,19 @@ class AppearanceChecks:
     def worth_other_polarity(state: RegistrationState, winner: LabellingFit) -> bool:
         """Whether the levels contest at the clicks should run again under the other polarity
         (``contest_under_other_polarity``): the polarity was left unclear at the clicks, on an image taken as stored
-        whose file does not state a polarity, the user did not set it, and the contest's ``winner`` explains the
-        image poorly (``levels.explains_the_image``: under the confidence rule's floor, or its clicks beyond the
-        cap). The polarity at the clicks is judged on the labellings most plausible by click spacing; when all of
-        them are wrong neither polarity shows an aligned spine there, and the verdict can name the wrong one (seen:
-        report case 205, chest, T10-T12 clicked, the 10th most plausible of 11: taken bone bright, unclear, on three
-        bone-dark images; the contest on the inverted image then won with T1-T3 at GC 0.22-0.27, ambiguous, where
-        under bone dark T10-T12 wins at GC 0.81)."""
+        whose file does not state a polarity, the user did not set it, the contest's ``winner`` was not among the
+        labellings the polarity was judged on, and it explains the image poorly (``levels.explains_the_image``:
+        under the confidence rule's floor, or its clicks beyond the cap). The polarity at the clicks is judged on
+        the labellings most plausible by click spacing; when all of them are wrong neither polarity shows an aligned
+        spine there, and the verdict can name the wrong one (seen: report case 205, chest, T10-T12 clicked, the 10th
+        most plausible of 11: taken bone bright, unclear, on three bone-dark images; the contest on the inverted
+        image then won with T1-T3 at GC 0.22-0.27, ambiguous, where under bone dark T10-T12 wins at GC 0.81). A
+        winner the polarity was judged on left it unclear itself: the image cannot tell, and a second contest only
+        costs time (seen: large patients stored bone bright, 5-25 s more a run, never taken)."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         return (a is not None and cp is not None and not a.clear and p.polarity not in POLARITIES
                 and not state.xray.polarity_stated and a.orientation == "as-stored"
-                and not explains_the_image(winner, p.identify.rule))
+                and not _judged(winner, cp.labels) and not explains_the_image(winner, p.identify.rule))
 
     def contest_under_other_polarity(self, state: RegistrationState, first: LevelIdentification,
                                      contest: Callable[[], LevelIdentification]) -> LevelIdentification:
