@@ -292,7 +292,7 @@ class Appearance:
         (``with_winner``)."""
         polarity = next(k for k in POLARITIES if k != self.polarity)
         other = replace(self, polarity=polarity, storage=dark_storage if polarity == "bone-dark" else "log-display",
-                        clear=False, scores={k: v for k, v in self.scores.items() if k != "at_clicks_with_winner"},
+                        clear=False, scores=dict(self.scores),
                         orientation_at_clicks=None, orientation_decided_by="image (database)",
                         note=(f"{polarity}, tried because as {self.polarity} (unclear) the best labelling of the "
                               "clicks explained the image poorly; not clear"))

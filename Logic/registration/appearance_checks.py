@@ -18,9 +18,10 @@ lead) and the user did not set the polarity:
 6. the warnings on the appearance.
 
 ``with_winner`` is the levels stage's ``judge_appearance``: the contest's winner judged at the clicks too. When the
-polarity stayed unclear at the clicks and the contest's winner explains the image poorly, the levels stage runs the
-contest again under the other polarity (``worth_other_polarity``, ``contest_under_other_polarity``) and takes it only
-when its winner, judged at the clicks too, confirms that polarity. The appearance in use (``state.appearance``)
+polarity stayed unclear at the clicks and the contest's winner, not judged there, explains the image poorly, the
+levels stage runs the contest again under the other polarity (``worth_other_polarity``,
+``contest_under_other_polarity``) and takes it only when its winner, judged at the clicks too, confirms that
+polarity. The appearance in use (``state.appearance``)
 always comes with the X-ray's attenuation image converted by it (``_use_appearance``). Every number and rule is
 the README's rule item 5 and ``image.appearance``'s thresholds; this module only orders the checks and keeps their
 evidence in ``appearance.scores``.

@@ -50,9 +50,10 @@ contest's winner was not among them, the pipeline judges the appearance again wi
 (``judge_appearance``): when it was unclear (seen: the chest case above, right but ambiguous in 8 of 8 runs because
 its polarity had been judged on wrong labellings only, where neither polarity shows an aligned spine), and when it
 was trusted, so that no confident answer names a labelling whose display orientation was never judged. When the
-appearance stayed unclear and even the winner explains the image poorly, the pipeline runs the whole contest again
-on the image converted as the other polarity, and keeps it only when its winner confirms that polarity
-(``AppearanceChecks.contest_under_other_polarity``; stop 42, report case 205).
+appearance stayed unclear and even the winner, a labelling the polarity was not judged on, explains the image
+poorly, the pipeline runs the whole contest again on the image converted as the other polarity, and keeps it only
+when its winner confirms that polarity (``AppearanceChecks.contest_under_other_polarity``; stop 42, report case
+205).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
 challenges the best with its pose moved one level up and down; the answer is only ever **proposed**.
