@@ -1,8 +1,8 @@
 """The levels contest run again under the other polarity (``AppearanceChecks.contest_under_other_polarity``): when
-the polarity stayed unclear at the clicks and the contest's winner explains the image poorly, on cases of the
-appearance benchmark whose polarity had been judged on wrong labellings only (report case 205, chest, T10-T12
-clicked, the 10th most plausible of 11 labellings by click spacing). Where it runs and must change nothing (a
-large patient, bone bright, whose second contest is not confirmed): ``test_polarity_at_clicks_without_shading``."""
+the polarity stayed unclear at the clicks and the contest's winner, not among the labellings it was judged on,
+explains the image poorly, on a case of the appearance benchmark whose polarity had been judged on wrong labellings
+only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing). A winner
+the polarity was judged on gets no second contest: ``test_polarity_at_clicks_without_shading`` (case 92)."""
 
 import pytest
 from appearance_cases import appearance_case_registrar
