@@ -94,15 +94,21 @@ from carmreg.logic.registration.state import RegistrationState
 
 @contextlib.contextmanager
 def _all_or_nothing(state: RegistrationState):
-    """The appearance, the polarity evidence at the clicks and the warnings as they were should the block raise (a
-    cancel): a check judged again with the levels' winner never leaves them half updated (a re-run could then trust
-    an orientation never checked at the clicks)."""
-    kept = (copy.deepcopy(state.appearance), state.click_polarity, list(state.warnings))
+    """The appearance, the polarity evidence at the clicks, the warnings and the X-ray as converted as they were
+    should the block raise (a cancel): a check judged again with the levels' winner never leaves them half updated (a
+    re-run could then trust an orientation never checked at the clicks). Yields what it keeps, so that the block can
+    also undo itself (``_restore``)."""
+    kept = (copy.deepcopy(state.appearance), state.click_polarity, list(state.warnings), state.xray_line_integral)
     try:
-        yield
+        yield kept
     except BaseException:
-        state.appearance, state.click_polarity, state.warnings[:] = kept
+        _restore(state, kept)
         raise
+
+
+def _restore(state: RegistrationState, kept: tuple) -> None:
+    """Put back what ``_all_or_nothing`` kept."""
+    state.appearance, state.click_polarity, state.warnings[:], state.xray_line_integral = kept
 
 
 def _settled(state: RegistrationState, checked_gc: float) -> bool:
@@ -417,33 +423,30 @@ class AppearanceChecks:
         the appearance is then trusted, i.e. its winner, judged at the clicks under both polarities as the leaders
         were, confirmed that polarity by ``CLEAR_WITH_WINNER_GC`` (``with_winner``) and the orientation held.
         Otherwise the ``first`` answer, the appearance, the polarity evidence and the warnings stay as they were
-        (also on a cancel). No threshold of its own: the same rule that trusts a polarity with the winner of the
-        first contest. Either way ``scores["contest_under_other_polarity"]`` records both contests' winners."""
+        (also on a cancel: ``_all_or_nothing``). No threshold of its own: the same rule that trusts a polarity with
+        the winner of the first contest. Either way ``scores["contest_under_other_polarity"]`` records both contests'
+        winners."""
         a, cp, xray = state.appearance, state.click_polarity, state.xray
-        kept = (a, cp, list(state.warnings), state.xray_line_integral)
         other = a.other_polarity(cp.dark_storage, orientation_scores(
             xray.pixels, state.mask, state.database.drrs, state.coarse_factor, a.polarity != "bone-dark"))
         self._report("levels", 0.5, f"the best labelling explains the X-ray poorly as {a.polarity}: the contest "
                                     f"again as {other.polarity}")
-        try:
+        with _all_or_nothing(state) as kept:
             state.appearance = other
             state.xray_line_integral = attenuation(xray.pixels, state.mask, other.bone_dark, other.storage)
             again = contest()
-        except BaseException:
-            state.appearance, state.click_polarity, state.warnings[:], state.xray_line_integral = kept
-            raise
-        record = {"first": _contest_record(a.polarity, first), "again": _contest_record(other.polarity, again),
-                  "taken": bool(state.appearance.trusted)}
-        if record["taken"]:
-            state.appearance.scores["contest_under_other_polarity"] = record
-            state.appearance.note += (f"; found after the levels contest as {a.polarity} ended with "
-                                      f"{first.winner.labels[0]}-{first.winner.labels[-1]} explaining the "
-                                      "image poorly")
-            self._appearance_warnings(state)
-            return again
-        state.appearance, state.click_polarity, state.warnings[:], state.xray_line_integral = kept
-        a.scores["contest_under_other_polarity"] = record
-        return first
+            taken = state.appearance.trusted
+            if not taken:
+                _restore(state, kept)
+        state.appearance.scores["contest_under_other_polarity"] = {
+            "first": _contest_record(a.polarity, first), "again": _contest_record(other.polarity, again),
+            "taken": bool(taken)}
+        if not taken:
+            return first
+        state.appearance.note += (f"; found after the levels contest as {a.polarity} ended with "
+                                  f"{first.winner.labels[0]}-{first.winner.labels[-1]} explaining the image poorly")
+        self._appearance_warnings(state)
+        return again
 
     def _orientation_with_winner(self, state: RegistrationState, winner: LabellingFit) -> bool:
         """A trusted appearance (``Appearance.trusted``) whose orientation check at the clicks did not judge the
