@@ -4,9 +4,12 @@ explains the image poorly, on a case of the appearance benchmark whose polarity 
 only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing). A winner
 the polarity was judged on gets no second contest: ``test_polarity_at_clicks_without_shading`` (case 92)."""
 
+import json
+
 import pytest
 from appearance_cases import appearance_case_registrar
 
+from carmreg.logic.errors import CancelledError
 from carmreg.logic.registration.level_confidence import ConfidenceRule
 
 
@@ -16,17 +19,45 @@ def clicked_case(tmp_path_factory, drr_cache_dir):
     return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
 
 
+def _cancelled_in_the_second_contest(logic, state) -> dict:
+    """The levels stage run with a cancel asked as the second contest starts (its progress message): the
+    ``CancelledError`` it ends with must come from inside that contest. Returns what the appearance in use, its
+    polarity evidence, the warnings and the converted X-ray were when it started."""
+    kept = {}
+
+    def progress(stage, fraction, message):
+        if "the contest again as" in message:
+            kept.update(appearance=json.dumps(state.appearance.as_dict(), sort_keys=True, default=str),
+                        click_polarity=state.click_polarity, warnings=list(state.warnings),
+                        xray=state.xray_line_integral)
+            logic.cancel()  # raised at the next check: inside the second contest's first registration
+
+    logic.progress = progress
+    with pytest.raises(CancelledError):
+        logic.run_stage(state, "levels")
+    logic.progress = None
+    return kept
+
+
 @pytest.mark.slow
 def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under_the_other(clicked_case):
     """Case 205's intensifier image, bone dark, log storage, 16-bit PNG, unnamed clicks: judged at the clicks on
     T4-T6 ... T8-T10 (all wrong) it is taken bone bright, unclear; the contest on the inverted image is won by T1-T3
     under the image floor (stop 41: ambiguous, the polarity wrong). Run again as bone dark, T10-T12 wins and,
     judged at the clicks too, confirms bone dark: the answer is right and confident, and both contests are
-    recorded."""
+    recorded. A cancel inside the second contest first leaves the appearance, its evidence, the warnings and the
+    converted X-ray as they were when it started (``_all_or_nothing``), and the stage run again then gives that
+    answer."""
     logic, state, truth = clicked_case(205, "ii-dark-log-png")
     a = state.appearance
     assert (a.polarity, a.clear, a.orientation) == ("bone-bright", False, "as-stored")
     assert list(truth["clicked"]) not in [list(lb) for lb in state.click_polarity.labels]
+    kept = _cancelled_in_the_second_contest(logic, state)
+    assert kept, "the second contest never started"
+    assert json.dumps(state.appearance.as_dict(), sort_keys=True, default=str) == kept["appearance"]
+    assert state.appearance.polarity == "bone-bright" and state.xray_line_integral is kept["xray"]
+    assert state.click_polarity is kept["click_polarity"] and state.warnings == kept["warnings"]
+    assert "contest_under_other_polarity" not in state.appearance.scores
     logic.run_stage(state, "levels")
     a, ident = state.appearance, state.identification
     record = a.scores["contest_under_other_polarity"]
