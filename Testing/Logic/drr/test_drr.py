@@ -396,15 +396,32 @@ def test_vtk_agrees_with_cpu_on_real_ct():
 # batches, caching, intensities
 
 
-def test_parallel_and_serial_kernels_agree(monkeypatch):
+def _parallel_and_serial() -> tuple[np.ndarray, np.ndarray]:
+    """The same three DRRs from the parallel kernel and from the serial one."""
     level = random_level(seed=5)
     geometry = CarmGeometry(CarmIntrinsics(900.0, (2.0, 2.0), (20, 16)), (0.0, 0.0, 0.0), 500.0)
     poses = np.array([[0, 0, 0, 0, 0, 0], [5, -3, 2, 4, -5, 6], [-8, 2, 6, -3, 7, -20]], float)
-    monkeypatch.setattr(drr_cpu, "SERIAL_WORK_LIMIT", 0)
-    parallel = render_line_integrals(level, geometry, poses)
-    monkeypatch.setattr(drr_cpu, "SERIAL_WORK_LIMIT", 10**12)
-    serial = render_line_integrals(level, geometry, poses)
-    assert parallel.any() and np.array_equal(parallel, serial)
+    limit = drr_cpu.SERIAL_WORK_LIMIT
+    try:
+        drr_cpu.SERIAL_WORK_LIMIT = 0
+        parallel = render_line_integrals(level, geometry, poses)
+        drr_cpu.SERIAL_WORK_LIMIT = 10**12
+        return parallel, render_line_integrals(level, geometry, poses)
+    finally:
+        drr_cpu.SERIAL_WORK_LIMIT = limit
+
+
+def test_parallel_and_serial_kernels_agree():
+    """In a process of its own with two numba threads: ``scripts/test.sh`` runs the suite on one thread per
+    worker, where the parallel kernel would run its rows one after another."""
+    child = ("import sys, numba, numpy as np; sys.path.insert(0, sys.argv[1]); import test_drr as t; "
+             "parallel, serial = t._parallel_and_serial(); "
+             "assert numba.get_num_threads() == 2, numba.get_num_threads(); "
+             "assert parallel.any() and np.array_equal(parallel, serial); print('agree')")
+    env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
+    run = subprocess.run([sys.executable, "-c", child, str(Path(__file__).parent)], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0 and run.stdout.strip() == "agree", run.stderr[-2000:]
 
 
 @pytest.mark.parametrize("serial_limit", [0, 10**12], ids=["parallel", "serial"])
