@@ -4,11 +4,13 @@
 # The tests run on one pytest-xdist worker per core, each worker on one numba thread: most of the suite's time is
 # registrations whose DRR kernel is parallel over image rows, and two processes on one thread each keep two cores
 # busier than one process on two (stop 43, this 2-core machine: 7 min 51 s against 9 min 19 s - 9 min 52 s).
-# CARMREG_TEST_WORKERS=0 runs everything in this process (numba on every core), =N on N workers.
+# Up to four workers (each holds its own CTs and cases); CARMREG_TEST_WORKERS=0 runs everything in this process
+# (numba on every core), =N on N workers.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 .venv/bin/ruff check .
-workers=${CARMREG_TEST_WORKERS:-auto}
+cores=$(nproc 2>/dev/null || echo 2)
+workers=${CARMREG_TEST_WORKERS:-$(( cores < 4 ? cores : 4 ))}
 args=(-q --durations=15)
 if [ "$workers" != "0" ]; then
   export NUMBA_NUM_THREADS=1
