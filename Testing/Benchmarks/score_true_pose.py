@@ -7,8 +7,8 @@ wrong pose (more starts cannot help); when higher, the search missed it.
     ../../.venv/bin/python score_true_pose.py --case 229 --variant ii-dark-log-png --mode none --cache-dir C
 
 Stop 43, case 229 without clicks (T1-T6 proposed with T6 named wrong): its intensifier PNG GC 0.894 at the found
-pose against 0.883 at the true one (4 mm), 0.832 against 0.823 (3 mm): the image's; its low-dose TIFF 0.882 against
-0.893 (4 mm), 0.807 against 0.816 (3 mm): the search's. Registered in process, as the benchmark's tests prepare a
+pose against 0.883 at the true one (4 mm), 0.832 against 0.823 (3 mm); its low-dose TIFF 0.893 against 0.882
+(4 mm), 0.816 against 0.807 (3 mm): both the image's. Registered in process, as the benchmark's tests prepare a
 case, which finds nearly but not exactly the poses of the command line.
 """
 
@@ -59,7 +59,7 @@ def main() -> None:
     print(f"case {args.case} {args.variant} {args.mode}: {state.identification.status}, winner "
           f"{'-'.join(winner.labels)}, found pose {np.round(winner.pose, 1)}, true pose {np.round(true_pose, 1)}")
     for mu_mm, pixel_mm in GRIDS:
-        found, true = gc_at(state, np.array([winner.pose, true_pose]), mu_mm, pixel_mm)[[1, 0]]
+        found, true = gc_at(state, np.array([winner.pose, true_pose]), mu_mm, pixel_mm)
         print(f"  {mu_mm:g} mm level, {pixel_mm:g} mm pixels: GC found {found:.3f}, true {true:.3f}")
 
 
