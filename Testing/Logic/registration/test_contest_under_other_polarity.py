@@ -1,8 +1,9 @@
 """The levels contest run again under the other polarity (``AppearanceChecks.contest_under_other_polarity``): when
 the polarity stayed unclear at the clicks and the contest's winner, not among the labellings it was judged on,
 explains the image poorly, on a case of the appearance benchmark whose polarity had been judged on wrong labellings
-only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing). A winner
-the polarity was judged on gets no second contest: ``test_polarity_at_clicks_without_shading`` (case 92)."""
+only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing), and on
+one where it must change nothing but its record (report case 201's mirrored display). A winner the polarity was
+judged on gets no second contest: ``test_polarity_at_clicks_without_shading`` (case 92)."""
 
 import json
 
@@ -19,23 +20,32 @@ def clicked_case(tmp_path_factory, drr_cache_dir):
     return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
 
 
-def _cancelled_in_the_second_contest(logic, state) -> dict:
-    """The levels stage run with a cancel asked as the second contest starts (its progress message): the
-    ``CancelledError`` it ends with must come from inside that contest. Returns what the appearance in use, its
-    polarity evidence, the warnings and the converted X-ray were when it started."""
+def _appearance_json(appearance) -> str:
+    return json.dumps(appearance.as_dict(), sort_keys=True, default=str)
+
+
+def _levels_watching_the_second_contest(logic, state, cancel: bool) -> dict:
+    """The levels stage run, noting what the appearance in use, its polarity evidence, the warnings and the converted
+    X-ray were as the second contest starts (its progress message; empty if it never does). ``cancel``: a cancel
+    asked right then, so that the ``CancelledError`` the stage must end with comes from inside that contest."""
     kept = {}
 
     def progress(stage, fraction, message):
         if "the contest again as" in message:
-            kept.update(appearance=json.dumps(state.appearance.as_dict(), sort_keys=True, default=str),
-                        click_polarity=state.click_polarity, warnings=list(state.warnings),
-                        xray=state.xray_line_integral)
-            logic.cancel()  # raised at the next check: inside the second contest's first registration
+            kept.update(appearance=_appearance_json(state.appearance), click_polarity=state.click_polarity,
+                        warnings=list(state.warnings), xray=state.xray_line_integral)
+            if cancel:
+                logic.cancel()  # raised at the next check: inside the second contest's first registration
 
     logic.progress = progress
-    with pytest.raises(CancelledError):
-        logic.run_stage(state, "levels")
-    logic.progress = None
+    try:
+        if cancel:
+            with pytest.raises(CancelledError):
+                logic.run_stage(state, "levels")
+        else:
+            logic.run_stage(state, "levels")
+    finally:
+        logic.progress = None
     return kept
 
 
@@ -52,9 +62,9 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
     a = state.appearance
     assert (a.polarity, a.clear, a.orientation) == ("bone-bright", False, "as-stored")
     assert list(truth["clicked"]) not in [list(lb) for lb in state.click_polarity.labels]
-    kept = _cancelled_in_the_second_contest(logic, state)
+    kept = _levels_watching_the_second_contest(logic, state, cancel=True)
     assert kept, "the second contest never started"
-    assert json.dumps(state.appearance.as_dict(), sort_keys=True, default=str) == kept["appearance"]
+    assert _appearance_json(state.appearance) == kept["appearance"]
     assert state.appearance.polarity == "bone-bright" and state.xray_line_integral is kept["xray"]
     assert state.click_polarity is kept["click_polarity"] and state.warnings == kept["warnings"]
     assert "contest_under_other_polarity" not in state.appearance.scores
@@ -67,3 +77,22 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
     assert list(ident.winner.labels) == list(truth["clicked"]) and ident.status == "confident"
     assert ident.winner.similarity > 0.6
     assert not any(w.startswith("X-ray polarity:") for w in state.warnings)
+
+
+@pytest.mark.slow
+def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_nothing_but_its_record(clicked_case):
+    """Case 201's mirrored display (chest, T7-T9 clicked, unnamed): bone dark, unclear at the clicks; the contest's
+    winner, T4-T6, explains the image poorly (stop 42: GC 0.34). Run again as bone bright, T11-L1 wins at about 0.16
+    and bone bright is not confirmed: the first answer (ambiguous), the appearance, its evidence and the converted
+    X-ray stay as they were when the second contest started, the appearance recording both contests, not taken."""
+    logic, state, truth = clicked_case(201, "ii-dark-mirrored-png")
+    kept = _levels_watching_the_second_contest(logic, state, cancel=False)
+    assert kept, "the second contest never started"
+    a, ident = state.appearance, state.identification
+    record = a.scores.pop("contest_under_other_polarity")
+    polarities = (record["first"]["polarity"], record["again"]["polarity"])
+    assert not record["taken"] and polarities == ("bone-dark", "bone-bright")
+    assert _appearance_json(a) == kept["appearance"] and (a.polarity, a.clear) == ("bone-dark", False)
+    assert state.xray_line_integral is kept["xray"] and state.click_polarity is kept["click_polarity"]
+    assert list(ident.winner.labels) == record["first"]["winner"] != list(truth["clicked"])
+    assert ident.status == "ambiguous" and state.warnings == [*kept["warnings"], ident.message]
