@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from carmreg.logic.drr.cpu import render_line_integrals, row_spans
-from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
-from carmreg.logic.registration.image_refine import refine_detector
+from carmreg.logic.registration.image_refine import refine_grid
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit
 from carmreg.logic.similarity.metrics import gc
 
@@ -35,10 +33,7 @@ def measure_agreement(ctx: FitContext, fits: list[LabellingFit]) -> None:
     todo = [f for f in fits if f.refined and not np.isfinite(f.refine.equalised_similarity)]
     if not todo:
         return
-    factor, small = refine_detector(ctx.geometry.intrinsics, ctx.refine)
-    cols, rows = small.size_px
-    fixed = bin_image_to(ctx.xray_equalised, factor, (rows, cols))
-    mask = bin_mask_to(ctx.mask, factor, (rows, cols))
-    drrs = render_line_integrals(ctx.mu, ctx.geometry, np.array([f.pose for f in todo]), small, row_spans(mask))
-    for f, value in zip(todo, gc(fixed, drrs, mask), strict=True):
+    grid = refine_grid(ctx.geometry.intrinsics, ctx.refine, ctx.xray_equalised, ctx.mask)
+    drrs = grid.line_integrals(ctx.mu, ctx.geometry, np.array([f.pose for f in todo]))
+    for f, value in zip(todo, gc(grid.image, drrs, grid.mask), strict=True):
         f.refine.equalised_similarity = float(value)

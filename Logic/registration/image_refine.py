@@ -70,18 +70,36 @@ class RefineResult:
     #                                             measured)
 
 
-def refine_detector(intrinsics: CarmIntrinsics, params: RefineParameters) -> tuple[int, CarmIntrinsics]:
-    """(binning factor, binned detector) on which a refinement with ``params`` compares DRRs with the X-ray: the
-    factor that brings the pixel nearest ``params.detector_pixel_mm``."""
+@dataclass(frozen=True)
+class RefineGrid:
+    """Where a refinement compares DRRs with an image: the binned detector and that image and its exposed field
+    binned onto it. Pixels (column, row), images indexed image[row, column]."""
+
+    detector: CarmIntrinsics   # the binned detector (``CarmIntrinsics.binned``)
+    image: np.ndarray          # (rows, cols) the image binned (``bin_image_to``)
+    mask: np.ndarray           # (rows, cols) bool, the exposed field binned (``bin_mask_to``)
+    spans: np.ndarray          # (rows, 2) the columns traced per row (``row_spans``: the field, grown one pixel)
+
+    def line_integrals(self, level: MuLevel, geometry: CarmGeometry, poses: np.ndarray) -> np.ndarray:
+        """DRR line integrals (n, rows, cols) of ``poses`` (n, 6) on this grid, traced over the field only (the
+        metrics never look outside it, so the scores are the same as from full DRRs)."""
+        return render_line_integrals(level, geometry, poses, self.detector, self.spans)
+
+
+def refine_grid(intrinsics: CarmIntrinsics, params: RefineParameters, image: np.ndarray, mask: np.ndarray
+                ) -> RefineGrid:
+    """The grid of a refinement with ``params`` on the detector ``intrinsics``: binned by the factor that brings
+    the pixel nearest ``params.detector_pixel_mm``; ``image`` and ``mask`` at full detector resolution."""
     factor = max(1, int(round(params.detector_pixel_mm / min(intrinsics.pixel_spacing_mm))))
-    return factor, intrinsics.binned(factor)
+    small = intrinsics.binned(factor)
+    cols, rows = small.size_px
+    binned_mask = bin_mask_to(mask, factor, (rows, cols))
+    return RefineGrid(small, bin_image_to(image, factor, (rows, cols)), binned_mask, row_spans(binned_mask))
 
 
-def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px, p: RefineParameters,
-               spans=None):
+def _objective(level, geometry, grid: RefineGrid, poses, scores, points_lps_mm, uv_px, p: RefineParameters):
     """(f, similarity, clicked mPDE) of each pose; ``scores`` = ``metrics.prepare`` against the X-ray."""
-    drrs = render_line_integrals(level, geometry, poses, intrinsics, spans)
-    score = scores(drrs)
+    score = scores(grid.line_integrals(level, geometry, poses))
     rotation = np.sum((poses[:, 3:] / 10.0) ** 2, axis=1)
     if len(points_lps_mm) == 0:
         return (1.0 - score) + p.rotation_weight * rotation, score, np.full(len(poses), np.nan)
@@ -91,10 +109,11 @@ def _objective(level, geometry, intrinsics, poses, scores, points_lps_mm, uv_px,
     return (1.0 - score) + p.landmark_weight * landmark + p.rotation_weight * rotation, score, pde.mean(axis=-1)
 
 
-def _scores(p: RefineParameters, fixed: np.ndarray, fmask: np.ndarray, pixel_mm: float):
-    """``metrics.prepare`` against the binned X-ray ``fixed``, both sides without their shading when
+def grid_scores(p: RefineParameters, grid: RefineGrid):
+    """``metrics.prepare`` (``p.metric``) against the grid's image, both sides without their shading when
     ``p.without_shading_mm`` asks (``image.shading``; the DRRs' shading in float32, deterministic and twice as fast).
     The scores in float64: rankings repeat bit for bit."""
+    fixed, fmask, pixel_mm = grid.image, grid.mask, grid.detector.pixel_spacing_mm[0]
     if p.without_shading_mm <= 0:
         return prepare(p.metric, fixed, fmask, dtype=np.float64)
     remove = shading_remover(fmask, p.without_shading_mm / pixel_mm)
@@ -114,17 +133,13 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     p = params or RefineParameters()
     t0 = time.perf_counter()
     intr = geometry.intrinsics
-    factor, small = refine_detector(intr, p)
-    cols, rows = small.size_px
-    fixed = bin_image_to(xray_line_integral, factor, (rows, cols))
-    fmask = bin_mask_to(mask, factor, (rows, cols))
+    grid = refine_grid(intr, p, xray_line_integral, mask)
     x0 = np.asarray(start_pose, float).copy()
     es = cma_strategy(x0, p.sigma, p.bounds, p.popsize, p.max_evaluations, p.seed, tolx=1e-3)
-    spans = row_spans(fmask)  # only the exposed field is traced: the metrics never look outside it
-    scores = _scores(p, fixed, fmask, small.pixel_spacing_mm[0])
+    scores = grid_scores(p, grid)
 
     def objective(poses):
-        return _objective(level, geometry, small, poses, scores, points_lps_mm, uv_px, p, spans)
+        return _objective(level, geometry, grid, poses, scores, points_lps_mm, uv_px, p)
 
     f0, s0, _ = objective(x0[None])
     best = (float(f0[0]), float(s0[0]), x0)

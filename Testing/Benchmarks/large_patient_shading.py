@@ -41,12 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
-from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import POSE_NAMES, CarmPose
-from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
+from carmreg.logic.image.prepare import attenuation
 from carmreg.logic.image.shading import without_shading
 from carmreg.logic.registration import appearance_checks, image_refine, pipeline
-from carmreg.logic.registration.image_refine import refine_detector
+from carmreg.logic.registration.image_refine import refine_grid
 from carmreg.logic.registration.state import RegistrationParameters
 from carmreg.logic.similarity.metrics import gc
 
@@ -126,22 +125,21 @@ def measure(folder: Path, cache_dir: str, sigma_mm: float, search: str | None, t
     truth = json.loads((folder / "truth.json").read_text())
     state, ct, params = polarity_check(folder, cache_dir)
     xray = state.xray
-    factor, small = refine_detector(state.geometry.intrinsics, params.refine_coarse)
-    cols, rows = small.size_px
-    mask = bin_mask_to(state.mask, factor, (rows, cols))
+    grids = {p: refine_grid(state.geometry.intrinsics, params.refine_coarse,
+                            attenuation(xray.pixels, state.mask, p == "bone-dark", "log-display"), state.mask)
+             for p in ("bone-dark", "bone-bright")}
     level = state.pyramid.level(params.refine_coarse.mu_spacing_mm)
-    sigma_px = sigma_mm / (state.geometry.intrinsics.pixel_spacing_mm[0] * factor)
-    images = {p: bin_image_to(attenuation(xray.pixels, state.mask, p == "bone-dark", "log-display"), factor,
-                              (rows, cols)) for p in ("bone-dark", "bone-bright")}
+    sigma_px = sigma_mm / grids["bone-dark"].detector.pixel_spacing_mm[0]
     true_polarity = "bone-bright" if truth["bone_bright_displayed"] else "bone-dark"
     geometry = app.make_geometry(ct, app.DETECTORS[app.VARIANTS[folder.name].detector])
     pose = CarmPose(*[truth["pose"][k] for k in POSE_NAMES]).as_array()
-    at_truth = scores(images[true_polarity], render_line_integrals(level, geometry, pose[None], small,
-                                                                   row_spans(mask)), mask, sigma_px)
+    grid = grids[true_polarity]
+    at_truth = scores(grid.image, grid.line_integrals(level, geometry, pose[None]), grid.mask, sigma_px)
     refined = {}
     for polarity, fits in state.image_polarity.registered.items():
-        drrs = render_line_integrals(level, state.geometry, np.array([f.pose for f in fits]), small, row_spans(mask))
-        refined[polarity] = scores(images[polarity], drrs, mask, sigma_px)
+        grid = grids[polarity]
+        drrs = grid.line_integrals(level, state.geometry, np.array([f.pose for f in fits]))
+        refined[polarity] = scores(grid.image, drrs, grid.mask, sigma_px)
     dark, bright = refined["bone-dark"], refined["bone-bright"]
     row = (f"| {folder.parent.name} {folder.name} | {true_polarity} | {verdict(state)} "
            f"| {at_truth[0]:.3f} | {at_truth[1]:.3f} | {dark[0]:.3f} / {bright[0]:.3f} "

@@ -22,9 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_appearance as bench  # noqa: E402
 
-from carmreg.logic.drr.cpu import render_line_integrals, row_spans  # noqa: E402
-from carmreg.logic.image.prepare import bin_image_to, bin_mask_to  # noqa: E402
-from carmreg.logic.registration.image_refine import RefineParameters, _scores, refine_detector  # noqa: E402
+from carmreg.logic.registration.image_refine import RefineParameters, grid_scores, refine_grid  # noqa: E402
 
 POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 GRIDS = ((4.0, 4.0), (3.0, 2.0))
@@ -34,12 +32,8 @@ GRIDS = ((4.0, 4.0), (3.0, 2.0))
 def gc_at(state, poses: np.ndarray, mu_mm: float, pixel_mm: float) -> np.ndarray:
     """GC of a DRR at each of ``poses`` (n, 6) against the X-ray as converted, on that grid."""
     p = RefineParameters(mu_spacing_mm=mu_mm, detector_pixel_mm=pixel_mm)
-    factor, small = refine_detector(state.geometry.intrinsics, p)
-    cols, rows = small.size_px
-    fixed = bin_image_to(state.xray_line_integral, factor, (rows, cols))
-    fmask = bin_mask_to(state.mask, factor, (rows, cols))
-    drrs = render_line_integrals(state.pyramid.level(mu_mm), state.geometry, poses, small, row_spans(fmask))
-    return _scores(p, fixed, fmask, small.pixel_spacing_mm[0])(drrs)
+    grid = refine_grid(state.geometry.intrinsics, p, state.xray_line_integral, state.mask)
+    return grid_scores(p, grid)(grid.line_integrals(state.pyramid.level(mu_mm), state.geometry, poses))
 
 
 def main() -> None:
