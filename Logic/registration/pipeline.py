@@ -434,11 +434,11 @@ class CarmRegLogic:
         ``shift_mm``, on the detector given that pincushion (``pincushion.with_shift``), the clicks taken to their
         ideal points through it."""
         p = state.parameters
-        points, uv = _pair_arrays(state.pairs)
-        geometry = state.geometry
+        geometry, pairs = state.geometry, state.pairs
         if shift_mm is not None:  # the pairs' clicks are as shown (``pincushion_unknown``: no distortion given)
             geometry = with_shift(state.geometry, shift_mm)
-            uv = geometry.intrinsics.distortion.undistort(uv)
+            pairs = None if pairs is None else ideal_clicks(pairs, geometry.intrinsics)
+        points, uv = _pair_arrays(pairs)
         return intensity_refine(state.pyramid.level(p.refine.mu_spacing_mm), geometry, start_pose,
                                 state.xray_line_integral, state.mask, points, uv, p.refine,
                                 should_stop=self._check_cancel)
