@@ -30,7 +30,7 @@ from carmreg.logic.drr.cpu import render_line_integrals, row_spans
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.projection_distance import pde_mm
 from carmreg.logic.geometry.volume import MuLevel
-from carmreg.logic.image.prepare import bin_image_to, bin_mask_to
+from carmreg.logic.image.prepare import bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.image.shading import shading_remover
 from carmreg.logic.registration.cma_search import cma_strategy
 from carmreg.logic.similarity.metrics import prepare
@@ -90,7 +90,7 @@ def refine_grid(intrinsics: CarmIntrinsics, params: RefineParameters, image: np.
                 ) -> RefineGrid:
     """The grid of a refinement with ``params`` on the detector ``intrinsics``: binned by the factor that brings
     the pixel nearest ``params.detector_pixel_mm``; ``image`` and ``mask`` at full detector resolution."""
-    factor = max(1, int(round(params.detector_pixel_mm / min(intrinsics.pixel_spacing_mm))))
+    factor = coarse_factor(intrinsics.pixel_spacing_mm, params.detector_pixel_mm)
     small = intrinsics.binned(factor)
     cols, rows = small.size_px
     binned_mask = bin_mask_to(mask, factor, (rows, cols))
