@@ -64,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "intraoperative C-arm X-ray by vertebral centroids.")
     sub = parser.add_subparsers(dest="command", required=True)
 
+    from carmreg.logic.image.turn import TURNS
+
     reg = sub.add_parser("register", help="register a CT to an X-ray")
     reg.add_argument("--ct", required=True, help="CT: DICOM folder, .nii/.nii.gz, .nrrd or .mha/.mhd")
     reg.add_argument("--ct-landmarks", required=True, help="CT centroids (.mrk.json or JSON), named by level")
@@ -75,6 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="no X-ray centroids: identify the levels in view from the image alone")
     reg.add_argument("--out", required=True, help="output folder")
     reg.add_argument("--series-uid", help="SeriesInstanceUID to read when the CT folder holds several series")
+    reg.add_argument("--orient-xray", choices=TURNS, metavar="TURN",
+                     help="turn the X-ray (and its clicks, given as on the stored image) before registering, when its "
+                     "display was stored mirrored or rotated: " + ", ".join(TURNS) + " (the name a refused X-ray's "
+                     "message gives); the results are drawn on the X-ray so turned")
     _registration_args(reg)
     _geometry_args(reg)
 
@@ -220,7 +226,11 @@ def _xray_clicks(xray, xray_lm_path, clicks: str = "named"):
     return Landmarks2D([None] * len(lm.labels), lm.uv_px, lm.source) if clicks == "unnamed" else lm
 
 
-def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None, clicks="named"):
+def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=None, clicks="named",
+              orient=None):
+    """Register and write the results; ``orient``: a ``turn.TURNS`` name the X-ray and its clicks (given on the
+    image as stored) are turned by first (``--orient-xray``)."""
+    from carmreg.logic.image.turn import turned_clicks, turned_xray
     from carmreg.logic.io.landmarks import read_landmarks_3d
     from carmreg.logic.io.volumes import load_volume
     from carmreg.logic.registration.pipeline import CarmRegLogic
@@ -230,8 +240,11 @@ def _register(ct_path, ct_lm_path, xray, xray_lm_path, out, params, series_uid=N
     ct = load_volume(ct_path, series_uid=series_uid)
     ct_lm = read_landmarks_3d(ct_lm_path)
     xray_lm = _xray_clicks(xray, xray_lm_path, clicks)
+    if orient:
+        xray_lm, xray = turned_clicks(xray_lm, orient, xray.size_px), turned_xray(xray, orient)
     print(f"CT {Path(ct_path).name}: {ct.shape} voxels, {np.round(ct.spacing_mm, 3).tolist()} mm; "
-          f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px; "
+          f"X-ray {Path(xray.source).name}: {xray.size_px[0]}x{xray.size_px[1]} px"
+          f"{f' (turned {orient})' if orient else ''}; "
           f"levels CT {', '.join(ct_lm.sorted().labels)}; X-ray clicks "
           f"{', '.join(x or '(unnamed)' for x in xray_lm.labels) or 'none'}")
     result = CarmRegLogic(progress=ProgressBar()).register(ct, ct_lm, xray, xray_lm, params)
@@ -296,7 +309,7 @@ def cmd_register(args) -> int:
     _check_out_dir(args.out)
     xray = _load_xray(args)
     result, _ = _register(args.ct, args.ct_landmarks, xray, args.xray_landmarks, args.out, _parameters(args),
-                          args.series_uid, "none" if args.no_clicks else "named")
+                          args.series_uid, "none" if args.no_clicks else "named", args.orient_xray)
     return EXIT_OK if result.ok else EXIT_CHECKS_FAILED
 
 

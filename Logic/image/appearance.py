@@ -145,6 +145,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to, rank_image
+from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
@@ -179,22 +180,6 @@ CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orien
 REFUSE_ORIENTATION_AT_CLICKS_GC = 0.10  # ... and another orientation's lead that refuses the image
 CLOSE_ORIENTATION_AT_CLICKS_GC = 0.15   # ... a lead either way under this is judged with more labellings (tune: a
 #                                         mirrored display trailed its mirror by 0.108, correct ones led by 0.052)
-ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
-                "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
-                "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
-
-
-def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndarray:
-    """Where pixels (u, v) = (column, row) of the stored image, ``size_px`` = (columns, rows), land in its
-    orientation ``ORIENTATIONS[name]`` (0-based pixel centres; np.rot90 turns counter-clockwise)."""
-    uv = np.asarray(uv_px, float).reshape(-1, 2)
-    u, v = uv[:, 0], uv[:, 1]
-    right, bottom = size_px[0] - 1.0 - u, size_px[1] - 1.0 - v
-    turned = {"as-stored": (u, v), "mirrored-left-right": (right, v), "flipped-up-down": (u, bottom),
-              "turned-180": (right, bottom), "turned-90": (v, right), "turned-270": (bottom, u)}[name]
-    return np.stack(turned, axis=1)
-
-
 def database_orientation(scores: dict) -> str:
     """The database's verdict on the orientation from its ``orientation_scores``: the best one when it leads the
     stored one by ``REFUSE_ORIENTATION_GC`` (the image refused), else "as-stored" (module docstring)."""

@@ -58,6 +58,7 @@ from carmreg.logic.image.appearance import (
 )
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import shading_remover
+from carmreg.logic.image.turn import turned_clicks
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
@@ -66,7 +67,6 @@ from carmreg.logic.registration.click_orientation import (
     oriented_context,
     rival_orientations,
     stored_against_turned,
-    turned_clicks,
 )
 from carmreg.logic.registration.click_polarity import (
     CLEAR_WITH_WINNER_GC,

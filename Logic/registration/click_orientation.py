@@ -10,7 +10,7 @@ With clicks, the CT can be put where they say first. The labellings the polarity
 (``click_polarity``, under the polarity used; the best of them scores the stored orientation) are registered
 again on each rival orientation o of the image - the
 image, its exposed field, the clicks and the detector's principal point and pixel spacing all turned with it
-(``appearance.orient_uv``) - exactly as the level check registers a labelling (``plan_labelling``,
+(``turn.orient_uv``) - exactly as the level check registers a labelling (``plan_labelling``,
 ``fit_labelling``). Names the user gave stay with their clicks (they are anatomy); unnamed clicks get each
 labelling's names head to sacrum along the turned image, as any labelling of unnamed clicks is made (so a display
 turned upside down is judged with its levels the right way up)::
@@ -40,14 +40,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
+from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_GC,
     CLOSE_ORIENTATION_AT_CLICKS_GC,
-    ORIENTATIONS,
-    orient_uv,
 )
-from carmreg.logic.io.landmarks import Landmarks2D
+from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_intrinsics
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
 from carmreg.logic.registration.labellings import order_along_spine
@@ -80,16 +78,10 @@ def rival_orientations(database_scores: dict) -> list[str]:
 
 
 def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
-    """The C-arm geometry of the image turned by ``appearance.ORIENTATIONS[name]``: its size, pixel spacing and
-    principal point turned with it, its radial distortion the same (the source and the detector plane unchanged)."""
-    intr = geometry.intrinsics
-    cols, rows = intr.size_px
-    (u0, v0), = orient_uv(np.array([intr.principal_point_px], float), name, intr.size_px)
-    quarter = name in ("turned-90", "turned-270")
-    size = (rows, cols) if quarter else (cols, rows)
-    spacing = tuple(reversed(intr.pixel_spacing_mm)) if quarter else tuple(intr.pixel_spacing_mm)
-    return geometry.with_intrinsics(CarmIntrinsics(intr.sdd_mm, spacing, size, (float(u0), float(v0)),
-                                                   dict(intr.sources), intr.distortion_mm))
+    """The C-arm geometry of the image turned by ``turn.ORIENTATIONS[name]`` (``turn.turned_intrinsics``: its
+    size, pixel spacing and principal point turned with it, its radial distortion the same; the source and the
+    detector plane unchanged)."""
+    return geometry.with_intrinsics(turned_intrinsics(geometry.intrinsics, name))
 
 
 def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,
@@ -133,13 +125,6 @@ def close_call(scores: dict) -> bool:
     verdict, whichever it is, then rests on the labellings judged (module docstring)."""
     rivals = [g for o, g in scores.items() if o != "as-stored" and g is not None and np.isfinite(g)]
     return bool(rivals) and abs(scores["as-stored"] - max(rivals)) < CLOSE_ORIENTATION_AT_CLICKS_GC
-
-
-def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> Landmarks2D:
-    """The clicks where orientation ``name`` of the image (``size_px`` = (columns, rows) as stored) shows them; names
-    stay with their clicks (they are anatomy)."""
-    return Landmarks2D(list(clicks.labels), orient_uv(clicks.uv_px, name, size_px), clicks.source,
-                       clicks.pixel_spacing_mm)
 
 
 def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: str, polarity: str,

@@ -430,6 +430,7 @@ def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct
         assert not result.ok and any("mirrored or rotated" in w for w in result.warnings)
         check = result.level_check
         assert "mirrored or rotated" in check.withheld and check.assigned_labels == [] and check.names() == []
+        assert f"--orient-xray {result.appearance.orientation}" in check.withheld  # how to register it after all
         assert check.winner_labels and not any(w.startswith("level names") for w in result.warnings)
     else:
         assert not result.level_check.withheld

@@ -15,15 +15,14 @@ from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_AT_CLICKS_GC,
     CLEAR_REFINED_GC,
     CLOSE_ORIENTATION_AT_CLICKS_GC,
-    ORIENTATIONS,
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     REFUSE_ORIENTATION_GC,
     decide_polarity,
-    orient_uv,
     verdict_at_clicks,
 )
+from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_clicks
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.appearance_checks import AppearanceChecks
@@ -35,7 +34,6 @@ from carmreg.logic.registration.click_orientation import (
     oriented_geometry,
     rival_orientations,
     stored_against_turned,
-    turned_clicks,
 )
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext

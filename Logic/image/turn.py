@@ -1,0 +1,76 @@
+"""An X-ray, its detector and its clicks turned by one of the shape-keeping orientations (``ORIENTATIONS``).
+
+Used two ways: the orientation checks register the image turned (``click_orientation``), and the user who knows a
+display was stored mirrored or rotated has it turned back before registering (``--orient-xray``, ``turned_xray``):
+a refused display (``outcome.refused_display``) names the orientation in which the image matches the CT, and that
+name turns it so.
+
+Turning is a relabelling of pixels: pixel (u, v) = (column, row) of the stored image, 0-based centres, lands at
+``orient_uv((u, v))``; the detector keeps its source, plane, pixel size and radial distortion, so its size, pixel
+spacing (swapped by a quarter turn) and principal point turn with the pixels. A turn of the display is a turn of
+the camera about its principal ray (a mirror, its reflection): the turned image on the turned detector is what the
+C-arm would have recorded with its camera so turned (``Testing/Logic/registration/test_click_orientation.py``). So
+an acquisition displayed turned, turned back, is the acquisition on its own detector again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from carmreg.logic.errors import CarmRegError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.io.landmarks import Landmarks2D
+from carmreg.logic.io.xray_image import XrayImage
+
+ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
+                "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
+                "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
+
+
+def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndarray:
+    """Where pixels (u, v) = (column, row) of the stored image, ``size_px`` = (columns, rows), land in its
+    orientation ``ORIENTATIONS[name]`` (0-based pixel centres; np.rot90 turns counter-clockwise)."""
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    u, v = uv[:, 0], uv[:, 1]
+    right, bottom = size_px[0] - 1.0 - u, size_px[1] - 1.0 - v
+    turned = {"as-stored": (u, v), "mirrored-left-right": (right, v), "flipped-up-down": (u, bottom),
+              "turned-180": (right, bottom), "turned-90": (v, right), "turned-270": (bottom, u)}[name]
+    return np.stack(turned, axis=1)
+
+
+TURNS = tuple(name for name in ORIENTATIONS if name != "as-stored")
+"""The orientations a user may have the X-ray turned by (``--orient-xray``)."""
+
+
+def turned_intrinsics(intr: CarmIntrinsics, name: str) -> CarmIntrinsics:
+    """The detector of the image turned by ``ORIENTATIONS[name]`` (module docstring); sources and distortion kept."""
+    cols, rows = intr.size_px
+    (u0, v0), = orient_uv(np.array([intr.principal_point_px], float), name, intr.size_px)
+    quarter = name in ("turned-90", "turned-270")
+    size = (rows, cols) if quarter else (cols, rows)
+    spacing = tuple(reversed(intr.pixel_spacing_mm)) if quarter else tuple(intr.pixel_spacing_mm)
+    return CarmIntrinsics(intr.sdd_mm, spacing, size, (float(u0), float(v0)), dict(intr.sources), intr.distortion_mm)
+
+
+def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> Landmarks2D:
+    """The clicks where orientation ``name`` of the image (``size_px`` = (columns, rows) as stored) shows them; names
+    stay with their clicks (they are anatomy)."""
+    return Landmarks2D(list(clicks.labels), orient_uv(clicks.uv_px, name, size_px), clicks.source,
+                       clicks.pixel_spacing_mm)
+
+
+def turned_xray(xray: XrayImage, name: str) -> XrayImage:
+    """``xray`` turned by ``ORIENTATIONS[name]`` as the user asked (``--orient-xray``): its pixels and its detector
+    (``turned_intrinsics``; none while the geometry is incomplete), recorded in ``sources["orientation"]`` (result.json
+    ``inputs.geometry_sources``). "as-stored" returns ``xray`` itself; an unknown name is a CarmRegError naming the
+    choices."""
+    if name == "as-stored":
+        return xray
+    if name not in TURNS:
+        raise CarmRegError(f"X-ray orientation '{name}' is not one of: {', '.join(TURNS)}")
+    pixels = np.ascontiguousarray(ORIENTATIONS[name](xray.pixels))
+    intrinsics = None if xray.intrinsics is None else turned_intrinsics(xray.intrinsics, name)
+    sources = {**xray.sources, "orientation": f"turned {name.replace('-', ' ')} as the user asked, before registering"}
+    return dataclasses.replace(xray, pixels=pixels, intrinsics=intrinsics, sources=sources)

@@ -1,0 +1,76 @@
+"""An X-ray, its detector and its clicks turned (``image.turn``): pixels, detector and clicks move together, and
+turning back restores all. (That the turned detector projects where the turned image shows a point, with the camera
+turned the same way: ``Testing/Logic/registration/test_click_orientation.py``.)"""
+
+import numpy as np
+import pytest
+
+from carmreg.logic.errors import CarmRegError
+from carmreg.logic.geometry.camera import CarmIntrinsics
+from carmreg.logic.image.turn import ORIENTATIONS, TURNS, orient_uv, turned_clicks, turned_xray
+from carmreg.logic.io.landmarks import Landmarks2D
+from carmreg.logic.io.xray_image import XrayImage
+
+UNDO = {"mirrored-left-right": "mirrored-left-right", "flipped-up-down": "flipped-up-down",
+        "turned-180": "turned-180", "turned-90": "turned-270", "turned-270": "turned-90"}
+
+
+def _xray() -> XrayImage:
+    """A 7 x 5 detector (columns x rows), non-square pixels, off-centre principal point, a pincushion."""
+    intr = CarmIntrinsics(1000.0, (0.3, 0.4), (7, 5), (2.25, 1.5), {"sdd_mm": "manual"}, 1.5)
+    pixels = np.arange(35, dtype=np.float32).reshape(5, 7)
+    return XrayImage(pixels, intr, 600.0, True, "x.png", {"sdd_mm": "manual"})
+
+
+@pytest.mark.parametrize("name", TURNS)
+def test_a_turned_xray_shows_each_pixel_and_click_where_the_turn_puts_it(name):
+    """Pixel (u, v) of the stored image holds the value the turned image holds at ``orient_uv((u, v))``, and a click
+    on it turns to that very pixel, its name kept."""
+    xray = _xray()
+    turned = turned_xray(xray, name)
+    cols, rows = turned.size_px
+    assert turned.pixels.shape == (rows, cols) and turned.intrinsics.size_px == (cols, rows)
+    v, u = np.mgrid[:5, :7]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    moved = orient_uv(uv, name, xray.size_px).round().astype(int)
+    np.testing.assert_array_equal(turned.pixels[moved[:, 1], moved[:, 0]], xray.pixels.ravel())
+    clicks = turned_clicks(Landmarks2D(["T11", None], uv[[3, 20]]), name, xray.size_px)
+    assert clicks.labels == ["T11", None]
+    np.testing.assert_array_equal(clicks.uv_px, moved[[3, 20]])
+    assert name.replace("-", " ") in turned.sources["orientation"] and "orientation" not in xray.sources
+
+
+@pytest.mark.parametrize("name", TURNS)
+def test_turning_back_restores_the_xray(name):
+    xray = _xray()
+    back = turned_xray(turned_xray(xray, name), UNDO[name])
+    np.testing.assert_array_equal(back.pixels, xray.pixels)
+    assert back.intrinsics == xray.intrinsics
+    np.testing.assert_array_equal(ORIENTATIONS[UNDO[name]](ORIENTATIONS[name](xray.pixels)), xray.pixels)
+
+
+def test_as_stored_is_the_xray_itself_an_incomplete_geometry_stays_so_and_an_unknown_turn_is_refused():
+    xray = _xray()
+    assert turned_xray(xray, "as-stored") is xray
+    no_geometry = XrayImage(xray.pixels, None)
+    turned = turned_xray(no_geometry, "turned-90")
+    assert turned.intrinsics is None and turned.pixels.shape == (7, 5)
+    with pytest.raises(CarmRegError, match="not one of: mirrored-left-right"):
+        turned_xray(xray, "sideways")
+
+
+@pytest.mark.parametrize("name", TURNS)
+def test_a_refused_display_names_the_turn_that_registers_it(name):
+    """The refusal (``outcome.refused_display``) says how to register the X-ray after all: ``--orient-xray`` with
+    the orientation it matches the CT in, a name the command line takes."""
+    from carmreg.cli import build_parser
+    from carmreg.logic.image.appearance import Appearance
+    from carmreg.logic.registration.outcome import refused_display
+
+    a = Appearance("bone-dark", "log-display", "image", True, 0.4, 0.22, {}, "bone-dark", "PNG", "bone-dark",
+                   orientation=name, orientation_scores={"as-stored": 0.2, name: 0.6})
+    message = refused_display(a)
+    assert f"--orient-xray {name}" in message and "GC 0.60 against 0.20" in message
+    args = build_parser().parse_args(["register", "--ct", "c", "--ct-landmarks", "l", "--xray", "x", "--no-clicks",
+                                      "--out", "o", "--orient-xray", name])
+    assert args.orient_xray == name
