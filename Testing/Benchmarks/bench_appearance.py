@@ -289,9 +289,13 @@ def _run_one(job: dict, cache_dir: str, timeout_s: float) -> dict:
     result_path = job["out"] / "result.json"
     if code in (0, 1) and result_path.is_file():
         result = json.loads(result_path.read_text())
+        if job.get("turned") and "projection_matrix" in result:
+            result = as_stored(result, job["turned"])
     row = {"case": job["case"], "half": half(job["case"]), "ct": job["ct_name"], "variant": job["variant"],
            "mode": job["mode"], "seconds": seconds, "truth_labels": job["truth"]["clicked"], "given": job["given"],
            "stderr": err if code not in (0, 1) else ""}
+    if job.get("turned"):
+        row["turned"] = job["turned"]
     row.update(score(job["mode"], code, result, job["truth"], job["given"], job["centroids"]))
     decided, source = polarity_read(result or {}, job["xray"], job["detector"]) if result else (None, "no result")
     truth_pol = truth_polarity(job["truth"])
@@ -339,11 +343,18 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         unnamed = [r for r in sel if r["ct"] == ct and r["mode"] == "unnamed"]
         bad = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in sel if r["ct"] == ct)
         lines.append(f"| {ct} | {sum(r['answer_right'] for r in unnamed)} / {len(unnamed)} | {bad} |")
-    flipped = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("mirrored")]
+    flipped = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("mirrored") and not r.get("turned")]
     if flipped:
         lines += ["", f"Mirrored display: {sum(r['status'] == 'confident' for r in flipped)} of {len(flipped)} "
                   "runs CONFIDENT (issue 11: a flipped image is detected and registered, or refused; never named "
                   "with confidence)."]
+    turned = [r for r in sel if r.get("turned")]
+    if turned:
+        wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in turned)
+        lines += ["", f"Mirrored display registered turned back (`--orient-xray {MIRROR_TURN}`): answer right in "
+                  f"{sum(bool(r['answer_right']) for r in turned)} of {len(turned)} runs, "
+                  f"{sum(r['status'] == 'confident' for r in turned)} CONFIDENT, {wrong} CONFIDENT (no clicks: "
+                  "proposed) and wrong."]
     lines += _targets(sel)
     lines += ["", "Levels not clicked: pose-PDE, found vs true pose (detector mm), modes unnamed + named.", "",
               "| variant | levels | median | 95th pct | max | within 5 mm |", "|---|---|---|---|---|---|"]
@@ -452,8 +463,10 @@ def write_results(out: Path, rows: list[dict], meta: dict) -> None:
 # ----------------------------------------------------------------------------------------------- main
 
 def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[str], done: set, work: Path,
-                  calibrated: bool = False) -> list[dict]:
-    """The runs of one case still to do; ``calibrated``: each is given its scene's pincushion (``distortion_args``)."""
+                  calibrated: bool = False, turn_mirrored: bool = False) -> list[dict]:
+    """The runs of one case still to do; ``calibrated``: each is given its scene's pincushion (``distortion_args``);
+    ``turn_mirrored``: a mirrored display is registered turned back (``--orient-xray``, as a user told by the
+    refusal would), its result scored in the stored frame (``as_stored``)."""
     todo = [(v, m) for v in variants for m in modes if (case, v, m) not in done]
     if not todo:
         return []
@@ -476,7 +489,27 @@ def jobs_for_case(maker: CaseMaker, case: int, variants: list[str], modes: list[
                          "out": folder / f"out_{m}", "detector": scenes[app.VARIANTS[v].detector].detector,
                          "truth": made["truth"], "given": given, "centroids": centroids.as_dict(),
                          "register_args": distortion_args(made["truth"]) if calibrated else []})
+            if turn_mirrored and app.VARIANTS[v].changes.get("mirrored"):
+                jobs[-1].update(turned=MIRROR_TURN, register_args=[*jobs[-1]["register_args"], "--orient-xray",
+                                                                   MIRROR_TURN])
     return jobs
+
+
+MIRROR_TURN = "mirrored-left-right"
+
+
+def as_stored(result: dict, turn: str) -> dict:
+    """A result registered on the X-ray turned by ``turn`` (``--orient-xray``; only the mirror, its own inverse)
+    with its projection matrix and principal point taken back to the image as stored, where the truth is:
+    u_stored = (columns - 1) - u_turned, i.e. P_stored = F P with F = [[-1, 0, columns - 1], [0, 1, 0], [0, 0, 1]]."""
+    assert turn == MIRROR_TURN, turn
+    geometry = dict(result["geometry"])
+    cols = geometry["size_px"][0]
+    flip = np.array([[-1.0, 0.0, cols - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    u0, v0 = geometry["principal_point_px"]
+    geometry["principal_point_px"] = [cols - 1.0 - u0, v0]
+    return {**result, "geometry": geometry,
+            "projection_matrix": (flip @ np.asarray(result["projection_matrix"], float)).tolist()}
 
 
 def rescore(rows: list[dict], work: Path) -> list[dict]:
@@ -496,8 +529,11 @@ def rescore(rows: list[dict], work: Path) -> list[dict]:
             continue
         truth = json.loads((folder / "truth.json").read_text())
         result = json.loads(result_path.read_text()) if result_path.is_file() and r.get("exit") in (0, 1) else None
+        if result is not None and r.get("turned") and "projection_matrix" in result:
+            result = as_stored(result, r["turned"])
         new = {k: r[k] for k in ("case", "half", "ct", "variant", "mode", "seconds", "truth_labels", "given",
                                  "stderr")}
+        new.update({"turned": r["turned"]} if r.get("turned") else {})
         new.update(score(r["mode"], r.get("exit"), result, truth, r["given"], centroids[r["ct"]]))
         detector = app.DETECTORS[app.VARIANTS[r["variant"]].detector]
         decided, source = polarity_read(result, xrays[0], detector) if result else (None, "no result")
@@ -526,6 +562,9 @@ def main(argv=None) -> int:
     parser.add_argument("--calibrated-distortion", action="store_true",
                         help="give every intensifier case its pincushion coefficient (--distortion-mm), as a "
                         "calibrated C-arm would")
+    parser.add_argument("--turn-mirrored", action="store_true",
+                        help="register the mirrored displays turned back (--orient-xray mirrored-left-right), as "
+                        "the refusal tells a user to")
     parser.add_argument("--summary-only", action="store_true", help="rewrite the tables from the JSON")
     parser.add_argument("--rescore", action="store_true",
                         help="with --summary-only: score the runs again from the result.json files under --work")
@@ -558,7 +597,8 @@ def main(argv=None) -> int:
             if (args.half != "all" and half(case) != args.half) or (
                     args.ct != "any" and maker.ct_name(case) != args.ct):
                 continue
-            jobs = jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion)
+            jobs = jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion,
+                                 args.turn_mirrored)
             for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
                 rows.append(row)
                 print(f"case {row['case']:3d} {row['ct'][:5]} {row['variant']:<27} {row['mode']:<7} "
