@@ -44,21 +44,25 @@ TURNS = tuple(name for name in ORIENTATIONS if name != "as-stored")
 """The orientations a user may have the X-ray turned by (``--orient-xray``)."""
 
 
+def _turned_pair(pair, name: str) -> tuple | None:
+    """A (column, row) pair (size, pixel spacing) of the image turned by ``name``: swapped by a quarter turn."""
+    if pair is None:
+        return None
+    return tuple(reversed(pair)) if name in ("turned-90", "turned-270") else tuple(pair)
+
+
 def turned_intrinsics(intr: CarmIntrinsics, name: str) -> CarmIntrinsics:
     """The detector of the image turned by ``ORIENTATIONS[name]`` (module docstring); sources and distortion kept."""
-    cols, rows = intr.size_px
     (u0, v0), = orient_uv(np.array([intr.principal_point_px], float), name, intr.size_px)
-    quarter = name in ("turned-90", "turned-270")
-    size = (rows, cols) if quarter else (cols, rows)
-    spacing = tuple(reversed(intr.pixel_spacing_mm)) if quarter else tuple(intr.pixel_spacing_mm)
-    return CarmIntrinsics(intr.sdd_mm, spacing, size, (float(u0), float(v0)), dict(intr.sources), intr.distortion_mm)
+    return CarmIntrinsics(intr.sdd_mm, _turned_pair(intr.pixel_spacing_mm, name), _turned_pair(intr.size_px, name),
+                          (float(u0), float(v0)), dict(intr.sources), intr.distortion_mm)
 
 
 def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> Landmarks2D:
-    """The clicks where orientation ``name`` of the image (``size_px`` = (columns, rows) as stored) shows them; names
-    stay with their clicks (they are anatomy)."""
+    """The clicks where orientation ``name`` of the image (``size_px`` = (columns, rows) as stored) shows them, their
+    pixel spacing turned too; names stay with their clicks (they are anatomy)."""
     return Landmarks2D(list(clicks.labels), orient_uv(clicks.uv_px, name, size_px), clicks.source,
-                       clicks.pixel_spacing_mm)
+                       _turned_pair(clicks.pixel_spacing_mm, name))
 
 
 def turned_xray(xray: XrayImage, name: str) -> XrayImage:

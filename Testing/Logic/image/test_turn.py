@@ -34,8 +34,8 @@ def test_a_turned_xray_shows_each_pixel_and_click_where_the_turn_puts_it(name):
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
     moved = orient_uv(uv, name, xray.size_px).round().astype(int)
     np.testing.assert_array_equal(turned.pixels[moved[:, 1], moved[:, 0]], xray.pixels.ravel())
-    clicks = turned_clicks(Landmarks2D(["T11", None], uv[[3, 20]]), name, xray.size_px)
-    assert clicks.labels == ["T11", None]
+    clicks = turned_clicks(Landmarks2D(["T11", None], uv[[3, 20]], pixel_spacing_mm=(0.3, 0.4)), name, xray.size_px)
+    assert clicks.labels == ["T11", None] and clicks.pixel_spacing_mm == turned.intrinsics.pixel_spacing_mm
     np.testing.assert_array_equal(clicks.uv_px, moved[[3, 20]])
     assert name.replace("-", " ") in turned.sources["orientation"] and "orientation" not in xray.sources
 
