@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_appearance as bench  # noqa: E402
 
+from carmreg.logic.geometry.camera import POSE_NAMES  # noqa: E402
 from carmreg.logic.registration.image_refine import RefineParameters, grid_scores, refine_grid  # noqa: E402
 
-POSE_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 GRIDS = ((4.0, 4.0), (3.0, 2.0))
 """(mu level mm, detector pixel mm) of the levels contest's refinements and of the local refinement."""
 
@@ -49,7 +49,7 @@ def main() -> None:
     for stage in ("database", "spatial", "levels"):
         logic.run_stage(state, stage)
     winner = state.identification.winner
-    true_pose = np.array([truth["pose"][k] for k in POSE_KEYS])
+    true_pose = np.array([truth["pose"][k] for k in POSE_NAMES])
     print(f"case {args.case} {args.variant} {args.mode}: {state.identification.status}, winner "
           f"{'-'.join(winner.labels)}, found pose {np.round(winner.pose, 1)}, true pose {np.round(true_pose, 1)}")
     for mu_mm, pixel_mm in GRIDS:
