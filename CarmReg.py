@@ -231,6 +231,14 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.ctPoints = self._node_selector(form, "CTPoints", "CT centroids:")
         ui.xray = self._node_selector(form, "Xray", "X-ray:")
         ui.xrayPoints = self._node_selector(form, "XrayPoints", "X-ray clicks (optional):")
+        ui.orientation = qt.QComboBox()
+        for name in slicer_nodes().ORIENTATION_CHOICES:
+            ui.orientation.addItem(f"shown {name.replace('-', ' ')}", name)
+        ui.orientation.toolTip = ("How the X-ray volume is turned before registering (its clicks with it; the "
+                                  "outputs come back onto the volume as stored). Leave it as stored unless CarmReg "
+                                  "refuses the image as mirrored or rotated and names the turn")
+        ui.orientation.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
+        form.addRow("X-ray orientation:", ui.orientation)
         form = sections["geometry"]
         ui.sdd = self._spin_box(form, "Source to detector:", " mm", 3000.0, "0 = from the DICOM file or 1000 mm")
         ui.spacing = self._spin_box(form, "Detector pixel spacing:", " mm", 10.0, "0 = from the file / volume")
@@ -248,6 +256,13 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.metric.addItems(list(slicer_nodes().METRICS))
         ui.metric.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("Similarity metric:", ui.metric)
+        ui.polarity = qt.QComboBox()
+        for key in slicer_nodes().POLARITY_CHOICES:
+            ui.polarity.addItem({"auto": "find from the image"}.get(key, key.replace("-", " ")), key)
+        ui.polarity.toolTip = ("How the X-ray shows bone. CarmReg finds it from the image against the CT and says "
+                               "how clearly; set it only to override")
+        ui.polarity.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
+        form.addRow("X-ray polarity:", ui.polarity)
         ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
         ui.checkLevels.connect("toggled(bool)", self.updateParameterNodeFromGUI)
         form.addRow(ui.checkLevels)
@@ -310,6 +325,9 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.sod.value = float(node.GetParameter("SodMm") or 0)
             self.ui.distortion.value = float(node.GetParameter("DistortionMm") or 0)
             self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
+            for combo, name, default in ((self.ui.polarity, "Polarity", "auto"),
+                                         (self.ui.orientation, "XrayOrientation", "as-stored")):
+                combo.setCurrentIndex(max(combo.findData(node.GetParameter(name) or default), 0))
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
             self.ui.estimatePincushion.checked = node.GetParameter("EstimatePincushion") != "false"
             ready = all(node.GetNodeReference(r) for r in ("CT", "CTPoints", "Xray"))
@@ -330,6 +348,8 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         node.SetParameter("SodMm", f"{self.ui.sod.value:g}")
         node.SetParameter("DistortionMm", f"{self.ui.distortion.value:g}")
         node.SetParameter("Metric", self.ui.metric.currentText)
+        for combo, name in ((self.ui.polarity, "Polarity"), (self.ui.orientation, "XrayOrientation")):
+            node.SetParameter(name, combo.itemData(combo.currentIndex))
         node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")
         node.SetParameter("EstimatePincushion", "true" if self.ui.estimatePincushion.checked else "false")
         node.EndModify(was_modified)

@@ -22,6 +22,7 @@ from pathlib import Path
 from qtpy import QtCore, QtGui, QtWidgets
 
 from carmreg.logic.errors import InputFileError
+from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.resources import ICON_PATH
 
 from .panels.geometry_panel import GeometryPanel
@@ -60,7 +61,9 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         self.state_folder = Path(state_folder) if state_folder else None
         self.ct_volume = None
         self.ct_path: str | None = None
-        self.xray = None
+        self.xray_as_stored = None  # XrayImage as read from its file, with the geometry overrides
+        self.xray_orientation = "as-stored"  # image.turn.ORIENTATIONS: how the window turns it (set_xray_orientation)
+        self.xray = None  # the X-ray turned so: what is shown, clicked and registered
         self.xray_path: str | None = None
         self.geometry_overrides: dict = {}
         self.result = None
@@ -206,6 +209,17 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         grid.addWidget(QtWidgets.QLabel("<b>X-ray</b>"), 3, 0)
         grid.addWidget(self.xray_info, 4, 0, 1, 3)
         grid.addWidget(load_xray, 5, 0)
+        self.orientation_combo = QtWidgets.QComboBox()
+        self.orientation_combo.setObjectName("xray_orientation")
+        for name in ORIENTATIONS:
+            self.orientation_combo.addItem(f"shown {name.replace('-', ' ')}", name)
+        self.orientation_combo.setToolTip(
+            "How the X-ray file is turned before it is shown, clicked and registered. Leave it as stored unless "
+            "CarmReg refuses the image as mirrored or rotated and names the turn: choose that turn here. Placed "
+            "points turn with the image; exported points and sessions stay on the image as stored.")
+        self.orientation_combo.activated.connect(self._action_orientation)
+        self.orientation_combo.setEnabled(False)  # until an X-ray is loaded (``_show_xray``)
+        grid.addWidget(self.orientation_combo, 5, 1, 1, 2)
         grid.addWidget(sample, 6, 0, 1, 3)
         layout.addWidget(box)
         layout.addWidget(self.geometry_panel)
@@ -292,6 +306,7 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
         self.result_panel.overlay_png_requested.connect(self._action_overlay_png)
         self.result_panel.report_requested.connect(self._action_report_pdf)
         self.result_panel.accept_names_requested.connect(self._action_accept_names)
+        self.result_panel.turn_requested.connect(self._action_turn_and_register)
         self.xray_store.naming_changed.connect(self.act_name_levels.setChecked)
         self.step_tabs.currentChanged.connect(self._step_changed)
 

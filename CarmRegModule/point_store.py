@@ -196,6 +196,17 @@ class PointStore(QtCore.QObject):
         else:
             self._set_all(new)
 
+    def map_positions(self, to_new) -> None:
+        """Every point moved by ``to_new`` (an (n, dim) array of positions to the (n, dim) new ones), ids, names and
+        the selection kept. Not an undo step of its own: the caller's (the X-ray turned) undoes it by mapping back,
+        so the steps before it still find their points."""
+        points = self._snapshot()
+        if points:
+            moved = np.asarray(to_new(np.array([p.position for p in points], float)), float).reshape(-1, self.dim)
+            for point, position in zip(points, moved, strict=True):
+                point.position = self._vec(position)
+            self._restore(points)
+
     # ------------------------------------------------------------------------------------- selection
     def select(self, point_id: int | None) -> None:
         if point_id != self.selected:

@@ -4,7 +4,9 @@ and the overlay on the X-ray volume's grid, the projected levels). Needs VTK and
 against ``slicer-core``'s real MRML nodes outside Slicer.
 
 Frames: Slicer's world is RAS; CarmReg's is the CT's LPS (RAS = diag(-1, -1, 1) LPS). The X-ray volume's voxel
-(i, j, 0) is detector pixel (u, v) = (column, row).
+(i, j, 0) is detector pixel (u, v) = (column, row) of the image as stored. With an X-ray orientation other than
+as stored (``XrayOrientation``, ``image.turn``: a display stored mirrored or rotated), the X-ray and its clicks are
+turned before registering, and the outputs turned back onto the stored volume's grid.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import os
 
 import numpy as np
 
+from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import METRICS
 
 LPS_TO_RAS_4 = ((-1.0, 0, 0, 0), (0, -1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
@@ -25,9 +28,14 @@ NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiduci
               "GridXray": "vtkMRMLScalarVolumeNode"}
 OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
 DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "DistortionMm": "0", "Metric": "gc",
-                      "CheckLevels": "true", "EstimatePincushion": "true"}
+                      "CheckLevels": "true", "EstimatePincushion": "true", "Polarity": "auto",
+                      "XrayOrientation": "as-stored"}
 """0 = take the value from the X-ray file (DICOM tags) or CarmReg's default; EstimatePincushion: a round field
-with no DistortionMm given gets its pincushion estimated from the image (``registration.pincushion``)."""
+with no DistortionMm given gets its pincushion estimated from the image (``registration.pincushion``); Polarity:
+auto (found from the image against the CT), bone-dark or bone-bright; XrayOrientation: ``image.turn.ORIENTATIONS``
+(module docstring)."""
+POLARITY_CHOICES = ("auto", "bone-dark", "bone-bright")
+ORIENTATION_CHOICES = tuple(ORIENTATIONS)
 
 
 def matrix_to_numpy(vtk_matrix):
@@ -183,17 +191,20 @@ def set_image_on_xray_grid(volume_node, image, xray_node):
         volume_node.CreateDefaultDisplayNodes()
 
 
-def set_projected_levels(markups_node, result, xray_node):
-    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0));
-    with a "?" after each name the image did not confirm (``style.unsure_name``: ambiguous, contradicted, or the
-    X-ray refused)."""
+def set_projected_levels(markups_node, result, xray_node, orientation="as-stored"):
+    """Every CT-labelled level's projected centroid, named, on the X-ray volume (RAS of its voxel (u, v, 0) as
+    stored: ``result``'s (u, v) on the X-ray turned by ``orientation`` taken back, ``image.turn.stored_uv``); with a
+    "?" after each name the image did not confirm (``style.unsure_name``: ambiguous, contradicted, or the X-ray
+    refused)."""
+    from carmreg.logic.image.turn import stored_uv
     from carmreg.logic.report.style import unsure_name
 
     markups_node.RemoveAllControlPoints()
     matrix = ijk_to_ras(xray_node)
     check = getattr(result, "level_check", None)
+    stored_size_px = tuple(xray_node.GetImageData().GetDimensions()[:2])
     for level in result.levels:
-        u, v = level["uv_px"]
+        (u, v), = stored_uv(np.array([level["uv_px"]], float), orientation, stored_size_px)
         ras = (matrix @ np.array([u, v, 0.0, 1.0]))[:3]
         index = markups_node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]),
                                              unsure_name(level["label"], check))
@@ -238,6 +249,18 @@ def parameters_from_node(parameter_node):
             (parameter_node.GetParameter("CheckLevels") or "true") == "true", number("DistortionMm", -np.inf))
 
 
+def display_from_node(parameter_node):
+    """(polarity, orientation) of a parameter node's X-ray: ``POLARITY_CHOICES``, ``ORIENTATION_CHOICES``."""
+    polarity = parameter_node.GetParameter("Polarity") or "auto"
+    orientation = parameter_node.GetParameter("XrayOrientation") or "as-stored"
+    if polarity not in POLARITY_CHOICES:
+        raise ValueError(f"CarmReg parameter Polarity = {polarity!r}; choose one of {', '.join(POLARITY_CHOICES)}")
+    if orientation not in ORIENTATIONS:
+        raise ValueError(f"CarmReg parameter XrayOrientation = {orientation!r}; choose one of "
+                         f"{', '.join(ORIENTATIONS)}")
+    return polarity, orientation
+
+
 def output_node(scene, parameter_node, role):
     """The output node the parameter node references for ``role``, created (and referenced) when absent."""
     node = parameter_node.GetNodeReference(role)
@@ -249,8 +272,9 @@ def output_node(scene, parameter_node, role):
 
 def register_nodes(parameter_node, logic=None, cache_dir=None):
     """Register the parameter node's CT, CT points, X-ray and X-ray clicks with ``logic`` (a
-    ``carmreg.logic`` CarmRegLogic: progress, cancel); returns (result, ct, ct_landmarks, xray). Raises
-    CarmReg's errors (one clear line) on bad input."""
+    ``carmreg.logic`` CarmRegLogic: progress, cancel); returns (result, ct, ct_landmarks, xray), ``xray`` turned by
+    the node's XrayOrientation as registered. Raises CarmReg's errors (one clear line) on bad input."""
+    from carmreg.logic.image.turn import turned_clicks, turned_xray
     from carmreg.logic.registration import pipeline
 
     nodes = {role: parameter_node.GetNodeReference(role) for role in ("CT", "CTPoints", "Xray", "XrayPoints")}
@@ -258,12 +282,16 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
     if missing:
         raise ValueError(f"CarmReg: select the {', '.join(missing)} input(s) first")
     sdd_mm, spacing_mm, sod_mm, metric, check_levels, distortion_mm = parameters_from_node(parameter_node)
+    polarity, orientation = display_from_node(parameter_node)
     ct = ct_from_node(nodes["CT"])
     ct_landmarks = ct_points_from_node(nodes["CTPoints"])
     xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm, distortion_mm)
     clicks = xray_points_from_node(nodes["XrayPoints"], nodes["Xray"]) if nodes["XrayPoints"] else None
+    if clicks is not None:
+        clicks = turned_clicks(clicks, orientation, xray.size_px)
+    xray = turned_xray(xray, orientation)
     params = pipeline.RegistrationParameters(
-        metric=metric, level_check=check_levels, cache_dir=cache_dir,
+        metric=metric, level_check=check_levels, cache_dir=cache_dir, polarity=polarity,
         estimate_pincushion=parameter_node.GetParameter("EstimatePincushion") != "false")
     result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)
     return result, ct, ct_landmarks, xray
@@ -271,13 +299,18 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
 
 def show_result(scene, parameter_node, result, xray):
     """Write a result into the output nodes (created when absent): C-arm transform, DRR and overlay volumes
-    on the X-ray's grid, projected named levels."""
+    on the X-ray's grid, projected named levels. ``xray``: as registered (``register_nodes``); images and levels
+    drawn on it go back onto the stored X-ray volume's grid by the node's XrayOrientation."""
+    from carmreg.logic.image.turn import stored_image
+
     xray_node = parameter_node.GetNodeReference("Xray")
+    orientation = display_from_node(parameter_node)[1]
     set_transform(output_node(scene, parameter_node, "CarmTransform"), result)
     if result.drr_line_integral is not None:
-        set_image_on_xray_grid(output_node(scene, parameter_node, "DRR"), result.drr_line_integral, xray_node)
-        set_image_on_xray_grid(output_node(scene, parameter_node, "Overlay"), overlay_rgb(result, xray), xray_node)
-    set_projected_levels(output_node(scene, parameter_node, "ProjectedLevels"), result, xray_node)
+        for role, image in (("DRR", result.drr_line_integral), ("Overlay", overlay_rgb(result, xray))):
+            set_image_on_xray_grid(output_node(scene, parameter_node, role), stored_image(image, orientation),
+                                   xray_node)
+    set_projected_levels(output_node(scene, parameter_node, "ProjectedLevels"), result, xray_node, orientation)
 
 
 def result_summary(result):

@@ -172,7 +172,15 @@ class WindowActions:
         try:
             self.apply_geometry(overrides)
         except CarmRegError:
-            self.geometry_panel.set_xray(self.xray, self.geometry_overrides)  # show what is really in force
+            self.geometry_panel.set_xray(self.xray_as_stored, self.geometry_overrides)  # what is really in force
+            raise
+
+    @report_errors
+    def _action_orientation(self, index: int):
+        try:
+            self.set_xray_orientation(self.orientation_combo.itemData(index))
+        except CarmRegError:
+            self._show_xray(pixels_changed=False)  # the combo shows the orientation really in force
             raise
 
     @report_errors
@@ -236,6 +244,10 @@ class WindowActions:
     @report_errors
     def _action_accept_names(self, *_):
         self.accept_assigned_names(ask=True)
+
+    @report_errors
+    def _action_turn_and_register(self, orientation: str):
+        self.turn_and_register(orientation)
 
     @report_errors
     def _action_next_stage(self, *_):

@@ -9,8 +9,10 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from qtpy import QtGui
 
 from carmreg.logic.errors import InputFileError, LandmarkError
+from carmreg.logic.image.turn import orient_uv, stored_uv
 from carmreg.logic.io import session as session_io
 from carmreg.logic.io.landmarks import read_landmarks_2d, read_landmarks_3d, write_landmarks_2d, write_landmarks_3d
 
@@ -63,29 +65,76 @@ class WindowData:
         self.set_xray_image(xray, str(path), overrides)
 
     def set_xray_image(self, xray, path: str | None = None, overrides: dict | None = None) -> None:
-        """Show ``xray`` (read from ``path``) with its geometry. Another X-ray file than the one shown takes the
-        clicks of the previous image away (``_drop_clicks_of_previous_xray``)."""
-        first = self.xray is None or self.xray_path != path
-        if first and self.xray is not None and path is not None:  # another file replaces the one shown
+        """Show ``xray`` (read from ``path``, as stored) with its geometry, turned by the X-ray orientation
+        (``set_xray_orientation``). Another X-ray file than the one shown takes the clicks of the previous image away
+        (``_drop_clicks_of_previous_xray``) and is shown as stored."""
+        first = self.xray_as_stored is None or self.xray_path != path
+        if first and self.xray_as_stored is not None and path is not None:  # another file replaces the one shown
             self._drop_clicks_of_previous_xray()
-        self.xray, self.xray_path = xray, path
+        if first:
+            self.xray_orientation = "as-stored"
+        self.xray_as_stored, self.xray_path = xray, path
         self.geometry_overrides = dict(overrides or {})
-        if first or xray is None:
-            self.xray_view.set_pixels(None if xray is None else xray.pixels)
-        intr = getattr(xray, "intrinsics", None)
-        self.xray_view.pixel_spacing_mm = intr.pixel_spacing_mm if intr else None
         self.geometry_panel.set_xray(xray, self.geometry_overrides)
-        if xray is not None:
-            cols, rows = xray.size_px
-            modality = xray.meta.get("modality", "") if isinstance(xray.meta, dict) else ""
+        self._show_xray(pixels_changed=first or xray is None)
+
+    def _show_xray(self, pixels_changed: bool) -> None:
+        """``self.xray``: the stored X-ray turned by ``self.xray_orientation``: what the view shows, the clicks lie on
+        and the registration gets."""
+        from carmreg.logic.image.turn import turned_xray
+
+        stored = self.xray_as_stored
+        self.xray = None if stored is None else turned_xray(stored, self.xray_orientation)
+        if pixels_changed:
+            self.xray_view.set_pixels(None if self.xray is None else self.xray.pixels)
+        intr = getattr(self.xray, "intrinsics", None)
+        self.xray_view.pixel_spacing_mm = intr.pixel_spacing_mm if intr else None
+        self.orientation_combo.blockSignals(True)
+        self.orientation_combo.setCurrentIndex(max(self.orientation_combo.findData(self.xray_orientation), 0))
+        self.orientation_combo.blockSignals(False)
+        self.orientation_combo.setEnabled(stored is not None)
+        if stored is not None:
+            cols, rows = stored.size_px
+            modality = stored.meta.get("modality", "") if isinstance(stored.meta, dict) else ""
             geometry = (f"SDD {intr.sdd_mm:.0f} mm, {intr.pixel_spacing_mm[0]:.3f} mm pixels"
                         if intr else "<span style='color:#ffa94d'>geometry incomplete: see below</span>")
-            self.xray_info.setText(f"{Path(path).name if path else 'X-ray (in memory)'}  {modality}<br>"
-                                   f"{cols} x {rows} px, bone {'dark' if xray.bone_dark else 'bright'}<br>"
-                                   f"{geometry}")
+            turned = ("" if self.xray_orientation == "as-stored" else
+                      f"<br><span style='color:#ffa94d'>shown {self.xray_orientation.replace('-', ' ')}</span>")
+            self.xray_info.setText(f"{Path(self.xray_path).name if self.xray_path else 'X-ray (in memory)'}  "
+                                   f"{modality}<br>{cols} x {rows} px, bone {'dark' if stored.bone_dark else 'bright'}"
+                                   f"<br>{geometry}{turned}")
         else:
             self.xray_info.setText("No X-ray loaded")
         self._inputs_changed()
+
+    def set_xray_orientation(self, name: str) -> None:
+        """Show, click and register the X-ray turned by ``name`` (``image.turn.ORIENTATIONS``): a display stored
+        mirrored or rotated, turned back as a refusal names it. The placed points turn with the image (one undo step,
+        "Show the X-ray ..."); exports and sessions keep them on the image as stored."""
+        from carmreg.logic.image.turn import ORIENTATIONS
+
+        if name not in ORIENTATIONS:
+            raise InputFileError(f"X-ray orientation '{name}' is not one of: {', '.join(ORIENTATIONS)}")
+        if self.xray_as_stored is None:
+            raise InputFileError("load an X-ray before turning it")
+        if name != self.xray_orientation:
+            self.undo_stack.push(_TurnXray(self, self.xray_orientation, name))
+
+    def _apply_orientation(self, name: str) -> None:
+        """Turn the shown X-ray to ``name`` and move the X-ray points with it (``_TurnXray`` does and undoes this)."""
+        old, size = self.xray_orientation, self.xray_as_stored.size_px
+        self.xray_orientation = name
+        self.xray_store.map_positions(lambda uv: orient_uv(stored_uv(uv, old, size), name, size))
+        self._show_xray(pixels_changed=True)
+
+    def xray_uv_as_stored(self, uv_px) -> np.ndarray:
+        """X-ray points (u, v) where the window shows them (turned by the X-ray orientation) on the image as stored."""
+        return stored_uv(uv_px, self.xray_orientation, self.xray_as_stored.size_px)
+
+    def xray_uv_as_shown(self, uv_px) -> np.ndarray:
+        """X-ray points (u, v) on the image as stored where the window shows them (the inverse of
+        ``xray_uv_as_stored``)."""
+        return orient_uv(uv_px, self.xray_orientation, self.xray_as_stored.size_px)
 
     def _drop_clicks_of_previous_xray(self) -> None:
         """Clicks placed on one X-ray are not the vertebrae of another (even of the same size, where they would
@@ -98,7 +147,7 @@ class WindowData:
 
     def apply_geometry(self, overrides: dict) -> None:
         """Re-read the X-ray with new geometry overrides (the logic decides and records the sources)."""
-        if self.xray is None:
+        if self.xray_as_stored is None:
             raise InputFileError("load an X-ray before setting its geometry")
         if self.xray_path:
             self.load_xray(self.xray_path, overrides)
@@ -107,29 +156,32 @@ class WindowData:
             CarmIntrinsics,  # in-memory image (tests, scripts): same rules, no file
         )
 
-        intr = self.xray.intrinsics
+        stored = self.xray_as_stored
+        intr = stored.intrinsics
         kw = _geometry_kwargs(overrides)
         spacing = kw.get("pixel_spacing_mm") or (intr.pixel_spacing_mm if intr else None)
         sdd = kw.get("sdd_mm") or (intr.sdd_mm if intr else None)
         new_intr = None
         if spacing is not None and sdd is not None:
-            new_intr = CarmIntrinsics(float(sdd), tuple(spacing), self.xray.size_px, kw.get("principal_point_px"),
+            new_intr = CarmIntrinsics(float(sdd), tuple(spacing), stored.size_px, kw.get("principal_point_px"),
                                       sources={k: "manual" for k in kw},
                                       distortion_mm=kw.get("distortion_mm", 0.0))
-        xray = dataclasses.replace(self.xray, intrinsics=new_intr, sod_mm=kw.get("sod_mm", self.xray.sod_mm))
+        xray = dataclasses.replace(stored, intrinsics=new_intr, sod_mm=kw.get("sod_mm", stored.sod_mm))
         self.set_xray_image(xray, None, overrides)
 
     def measure_distortion(self, path: str | Path):
         """The pincushion measured on a bead-grid X-ray of this C-arm (``grid_calibration.calibrate_for_detector``:
-        the grid image's own pixel spacing, else the X-ray's), set as the X-ray's ``distortion_mm`` override."""
+        the grid image's own pixel spacing, else the X-ray's), set as the X-ray's ``distortion_mm`` override. The
+        grid is taken as stored, like the X-ray file (same field size and orientation)."""
         from carmreg.logic.image.grid_calibration import calibrate_for_detector
         from carmreg.logic.io.xray import load_xray
 
-        if self.xray is None or self.xray.intrinsics is None:
+        stored = self.xray_as_stored
+        if stored is None or stored.intrinsics is None:
             raise InputFileError("load the X-ray and complete its geometry before measuring its pincushion")
         grid = load_xray(path)
         cal = calibrate_for_detector(grid.pixels, grid.intrinsics.pixel_spacing_mm if grid.intrinsics else None,
-                                     self.xray.intrinsics, str(path))
+                                     stored.intrinsics, str(path))
         self.geometry_panel.set_value("distortion_mm", round(cal.distortion_mm, 2))
         return cal
 
@@ -155,9 +207,13 @@ class WindowData:
         self.ct_store.replace_all(marks.labels, marks.points_lps_mm, f"Import {Path(path).name}", undoable)
 
     def import_xray_landmarks(self, path: str | Path, undoable: bool = True) -> None:
-        spacing = self.xray.intrinsics.pixel_spacing_mm if getattr(self.xray, "intrinsics", None) else None
+        """X-ray points from a file, given on the image as stored (as ``carmreg register`` takes them), shown where
+        the turned X-ray shows them."""
+        stored = self.xray_as_stored
+        spacing = stored.intrinsics.pixel_spacing_mm if getattr(stored, "intrinsics", None) else None
         marks = read_landmarks_2d(path, spacing)
-        self.xray_store.replace_all(marks.labels, marks.uv_px, f"Import {Path(path).name}", undoable)
+        uv_px = marks.uv_px if stored is None else self.xray_uv_as_shown(marks.uv_px)
+        self.xray_store.replace_all(marks.labels, uv_px, f"Import {Path(path).name}", undoable)
 
     def export_ct_landmarks(self, path: str | Path) -> Path:
         marks = self.ct_store.to_landmarks()
@@ -166,10 +222,14 @@ class WindowData:
         return write_landmarks_3d(path, marks)
 
     def export_xray_landmarks(self, path: str | Path) -> Path:
+        """The X-ray points on the image as stored (whatever turn the window shows it in)."""
         marks = self.xray_store.to_landmarks()
         if not len(marks.labels):
             raise LandmarkError("there are no X-ray centroids to export; place some first (step 3)")
-        spacing = self.xray.intrinsics.pixel_spacing_mm if getattr(self.xray, "intrinsics", None) else None
+        stored = self.xray_as_stored
+        spacing = stored.intrinsics.pixel_spacing_mm if getattr(stored, "intrinsics", None) else None
+        if stored is not None:
+            marks = dataclasses.replace(marks, uv_px=self.xray_uv_as_stored(marks.uv_px))
         return write_landmarks_2d(path, marks, spacing)
 
     def propose_centroids(self, label_map_path: str | Path, mode: str = "replace") -> list[str]:
@@ -240,6 +300,27 @@ class WindowData:
         points = [(p.label, p.position) for p in self.ct_store.points() if p.label]
         sel = self.ct_store.get(self.ct_store.selected) if self.ct_store.selected else None
         self.view3d.set_points(points, sel.label if sel else None)
+
+
+class _TurnXray(QtGui.QUndoCommand):
+    """The X-ray shown turned from one orientation to another, its points with it (``_apply_orientation``)."""
+
+    def __init__(self, window, old: str, new: str):
+        super().__init__(f"Show the X-ray {new.replace('-', ' ')}")
+        self.window, self.old, self.new, self.path = window, old, new, window.xray_path
+
+    def redo(self):
+        self._turn(self.new)
+
+    def undo(self):
+        self._turn(self.old)
+
+    def _turn(self, name: str) -> None:
+        """Turn the X-ray this step turned; another X-ray file loaded since makes the step obsolete (nothing done)."""
+        if self.window.xray_as_stored is None or self.window.xray_path != self.path:
+            self.setObsolete(True)
+            return
+        self.window._apply_orientation(name)
 
 
 def _geometry_kwargs(overrides: dict) -> dict:

@@ -308,6 +308,29 @@ class WindowRegistration:
                 sorted(set(self.names_to_accept().values()), key=_level_key))
             reason = "Rename the X-ray clicks to the names the image supports and register again (Ctrl+Z undoes)"
         self.result_panel.set_accept_enabled(self.act_accept_names.isEnabled(), reason, text)
+        self.result_panel.set_turn_offer(self.refused_display_turn())
+
+    def refused_display_turn(self) -> str | None:
+        """The X-ray orientation that shows the X-ray as the current result found it matches the CT, when that
+        result refused its display as mirrored or rotated (``outcome.refused_display``): the turn it was shown in,
+        then the turn the image matches in (``image.turn.composed``). None without such a result, when the result is
+        out of date, or when no orientation is that turn."""
+        from carmreg.logic.image.turn import composed
+
+        appearance = getattr(self.result, "appearance", None)
+        if self.result_stale or appearance is None or appearance.orientation == "as-stored":
+            return None
+        if self.xray_as_stored is None:
+            return None
+        return composed(self.xray_orientation, appearance.orientation)
+
+    def turn_and_register(self, orientation: str, wait: bool = False) -> None:
+        """Show the X-ray in ``orientation`` (one undo step, its points with it) and register again
+        (``run_registration``)."""
+        self.set_xray_orientation(orientation)
+        self.statusBar().showMessage(f"X-ray shown {orientation.replace('-', ' ')}; registering again. Ctrl+Z "
+                                     "undoes the turn", 10000)
+        self.run_registration(wait=wait)
 
     def accept_assigned_names(self, ask: bool = True, register: bool = True) -> dict[int, str]:
         """Name the X-ray clicks as the level identification assigned them (one undo step); returns the

@@ -23,10 +23,17 @@ class WindowSession:
 
     # =========================================================================================== session
     def current_session(self) -> session_io.Session:
+        """The user's work as a Session; the X-ray points on the image as stored, with the orientation it is shown
+        in."""
+        xray_points = self.xray_store.to_records()
+        if self.xray_as_stored is not None and xray_points:
+            stored = self.xray_uv_as_stored([p["uv_px"] for p in xray_points])
+            xray_points = [{**p, "uv_px": [float(x) for x in uv]} for p, uv in zip(xray_points, stored, strict=True)]
         return session_io.Session(
             ct_path=self.ct_path, xray_path=self.xray_path,
             geometry_overrides={k: v for k, v in self.geometry_overrides.items()},
-            ct_points=self.ct_store.to_records(), xray_points=self.xray_store.to_records(),
+            ct_points=self.ct_store.to_records(), xray_points=xray_points,
+            xray_orientation=self.xray_orientation if self.xray_as_stored is not None else "as-stored",
             parameters=self.registration_panel.parameters(),
             last_result=None if self.last_result_summary is None else {**self.last_result_summary,
                                                                        "stale": bool(self.result_stale)},
@@ -64,8 +71,11 @@ class WindowSession:
         self.geometry_overrides = dict(session.geometry_overrides)
         self.ct_store.replace_all([p["label"] for p in session.ct_points],
                                   [p["position_lps_mm"] for p in session.ct_points], undoable=False)
-        self.xray_store.replace_all([p["label"] for p in session.xray_points],
-                                    [p["uv_px"] for p in session.xray_points], undoable=False)
+        uv_px = [p["uv_px"] for p in session.xray_points]
+        if self.xray_as_stored is not None:
+            self._apply_orientation(session.xray_orientation)
+            uv_px = self.xray_uv_as_shown(np.reshape(uv_px, (-1, 2)))
+        self.xray_store.replace_all([p["label"] for p in session.xray_points], uv_px, undoable=False)
         metric = session.parameters.get("metric")
         if metric:
             self.registration_panel.set_metric(metric)

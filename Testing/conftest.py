@@ -40,12 +40,18 @@ def totalseg_dir(shared_data_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def drr_cache_dir(tmp_path_factory) -> str:
-    """One DRR database cache folder for the whole session. A database is keyed on the CT's mu level, the nominal
-    geometry and the grid (``registration.database.database_key``), so registrations of the same CT on the same
-    detector share one, whichever test builds it first; the same numbers as a fresh build (float32 saved whole).
-    Tests of the cache itself (damage, keys, unwritable folders) use folders of their own."""
-    return str(tmp_path_factory.mktemp("drr-cache"))
+def drr_cache_dir(tmp_path_factory, request) -> str:
+    """One DRR database cache folder for the whole session, shared by the pytest-xdist workers. A database is keyed
+    on the CT's mu level, the nominal geometry and the grid (``registration.database.database_key``), so
+    registrations of the same CT on the same detector share one, whichever test (on whichever worker) builds it
+    first; the same numbers as a fresh build (float32 saved whole, written atomically, so two workers building the
+    same one at once only cost the time). Tests of the cache itself (damage, keys, unwritable folders) use folders
+    of their own."""
+    if not hasattr(request.config, "workerinput"):  # not an xdist worker
+        return str(tmp_path_factory.mktemp("drr-cache"))
+    shared = tmp_path_factory.getbasetemp().parent / "drr-cache-shared"  # the run's folder above the workers'
+    shared.mkdir(exist_ok=True)
+    return str(shared)
 
 
 @pytest.fixture(scope="session")

@@ -244,15 +244,24 @@ def test_the_pincushion_is_measured_on_a_bead_grid_volume_slicer_loaded(mrml, tm
     assert node.GetParameter("DistortionMm") == "3" and module.slicer_nodes().parameters_from_node(node)[5] == 3.0
 
 
+@pytest.fixture(scope="module")
+def sample_registered(sample_nodes, drr_cache_dir):
+    """The sample case registered from its MRML nodes, named clicks taken as named (one labelling, faster):
+    (result, ct, ct_landmarks, xray)."""
+    parameters = sample_nodes["parameters"]
+    parameters.SetParameter("CheckLevels", "false")
+    return _module().slicer_nodes().register_nodes(parameters, cache_dir=drr_cache_dir)
+
+
 @pytest.mark.slow
-def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_xray(mrml, sample_nodes, drr_cache_dir):
+def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_xray(mrml, sample_nodes,
+                                                                                    sample_registered):
     from carmreg.logic.geometry.camera import project
 
     scene = mrml[0]
     module = _module()
     parameters = sample_nodes["parameters"]
-    parameters.SetParameter("CheckLevels", "false")  # named clicks taken as named: one labelling, faster
-    result, ct, ct_landmarks, xray = module.slicer_nodes().register_nodes(parameters, cache_dir=drr_cache_dir)
+    result, ct, ct_landmarks, xray = sample_registered
     assert result.level_check is None or result.level_check.mode == "named"
     assert result.ok, result.warnings
     pdes = [lv["pde_mm"] for lv in result.levels if lv.get("pde_mm") is not None]
@@ -279,6 +288,54 @@ def test_the_sample_case_registers_from_mrml_nodes_and_the_outputs_land_on_the_x
         assert levels.GetNthControlPointLabel(i) == level["label"]
         expected = (xray_matrix @ [*level["uv_px"], 0.0, 1.0])[:3]
         np.testing.assert_allclose(levels.GetNthControlPointPositionWorld(i), expected, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_an_xray_volume_stored_mirrored_registers_turned_back_and_its_outputs_land_on_it_as_stored(
+        mrml, sample_nodes, sample_registered, sample_case_dir, drr_cache_dir, tmp_path):
+    """The sample X-ray written mirrored (the same header) and loaded by Slicer's reader, its clicks placed where
+    that volume shows them; with XrayOrientation = mirrored-left-right (and a polarity given) it registers as the
+    acquisition does, and the DRR, overlay and projected levels come back onto the mirrored volume's own grid."""
+    from carmreg.logic.io.xray import load_xray
+    from carmreg.logic.io.xray_write import write_xray_dicom
+
+    scene, logics, _ = mrml
+    nodes = _module().slicer_nodes()
+    acquired = load_xray(sample_case_dir / "xray.dcm")
+    cols = acquired.size_px[0]
+    path = write_xray_dicom(tmp_path / "mirrored.dcm", np.ascontiguousarray(acquired.pixels.astype(np.uint16)[:, ::-1]),
+                            acquired.intrinsics, sod_mm=acquired.sod_mm)
+    xray_node = logics["volumes"].AddArchetypeVolume(str(path), "X-ray mirrored", 0)
+    clicks_node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "X-ray clicks mirrored")
+    matrix = nodes.ijk_to_ras(xray_node)
+    clicks = sample_nodes["clicks_uv"]
+    for label, (u, v) in zip(clicks.labels, clicks.uv_px, strict=True):
+        clicks_node.AddControlPoint(*map(float, (matrix @ [cols - 1 - u, v, 0.0, 1.0])[:3]), label)
+    parameters = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", "CarmReg mirrored")
+    nodes.set_default_parameters(parameters)
+    for role, node in (("CT", sample_nodes["ct"]), ("CTPoints", sample_nodes["points"]), ("Xray", xray_node),
+                       ("XrayPoints", clicks_node)):
+        parameters.SetNodeReferenceID(role, node.GetID())
+    parameters.SetParameter("CheckLevels", "false")
+    parameters.SetParameter("XrayOrientation", "mirrored-left-right")
+    parameters.SetParameter("Polarity", "bone-dark")
+    result, _, _, xray = nodes.register_nodes(parameters, cache_dir=drr_cache_dir)
+    expected = sample_registered[0]
+    np.testing.assert_allclose(result.projection_matrix, expected.projection_matrix, rtol=1e-6, atol=1e-6)
+    assert result.appearance.polarity == "bone-dark" and result.appearance.decided_by == "user"
+    np.testing.assert_array_equal(xray.pixels, acquired.pixels)
+    nodes.show_result(scene, parameters, result, xray)
+    drr = nodes.voxels_kji(parameters.GetNodeReference("DRR"))[0]
+    np.testing.assert_allclose(drr, expected.drr_line_integral[:, ::-1], rtol=1e-6)
+    np.testing.assert_allclose(nodes.ijk_to_ras(parameters.GetNodeReference("Overlay")), matrix)
+    levels = parameters.GetNodeReference("ProjectedLevels")
+    for i, level in enumerate(expected.levels):
+        u, v = level["uv_px"]
+        np.testing.assert_allclose(levels.GetNthControlPointPositionWorld(i),
+                                   (matrix @ [cols - 1 - u, v, 0.0, 1.0])[:3], atol=1e-6)
+    parameters.SetParameter("XrayOrientation", "sideways")
+    with pytest.raises(ValueError, match="XrayOrientation = 'sideways'; choose one of as-stored"):
+        nodes.register_nodes(parameters)
 
 
 def _to_parent(transform_node):

@@ -84,6 +84,7 @@ class ResultPanel(QtWidgets.QWidget):
     overlay_png_requested = QtCore.Signal()
     report_requested = QtCore.Signal()
     accept_names_requested = QtCore.Signal()
+    turn_requested = QtCore.Signal(str)  # an ``image.turn.ORIENTATIONS`` name: show the X-ray so, register again
 
     def __init__(self, overlay_view, parent=None):
         super().__init__(parent)
@@ -164,6 +165,12 @@ class ResultPanel(QtWidgets.QWidget):
         row.addWidget(self.png_button)
         layout.insertLayout(2, row)  # under the heading and the level banner: never below the fold
         layout.insertWidget(2, self.accept_button)  # the one step on the level names, right under the banner
+        self.turn_button = QtWidgets.QPushButton()
+        self.turn_button.setObjectName("turn_xray")
+        self.turn_button.setVisible(False)
+        self.turn_button.clicked.connect(lambda: self.turn_requested.emit(self._turn_offered))
+        self._turn_offered = ""
+        layout.insertWidget(3, self.turn_button)  # the one step on a refused display
         self.set_result(None)
 
     def _level_box(self) -> QtWidgets.QGroupBox:
@@ -292,6 +299,17 @@ class ResultPanel(QtWidgets.QWidget):
                     font.setBold(True)
                     item.setFont(font)
                 self.hypotheses_table.setItem(row, col, item)
+
+    def set_turn_offer(self, orientation: str | None) -> None:
+        """Offer "Show the X-ray <orientation> and register again" (a display refused as stored mirrored or
+        rotated, ``orientation`` the window's X-ray orientation that shows it as the CT matches it); None hides it."""
+        self._turn_offered = orientation or ""
+        self.turn_button.setVisible(bool(orientation))
+        if orientation:
+            self.turn_button.setText(f"Show the X-ray {orientation.replace('-', ' ')} and register again")
+            self.turn_button.setToolTip("The X-ray matches the CT best so turned: its display was stored mirrored or "
+                                        "rotated. Turns the image and its points (step 1's X-ray orientation; "
+                                        "Ctrl+Z undoes) and registers again")
 
     def set_accept_enabled(self, enabled: bool, reason: str = "", text: str | None = None) -> None:
         """Enable "Accept assigned names"; ``text`` relabels it (contradicted names: "Use the names the image

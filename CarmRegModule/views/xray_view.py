@@ -83,7 +83,8 @@ class XrayView(ImageCanvas):
         menu.exec(global_pos)
 
     def set_pixels(self, pixels: np.ndarray | None) -> None:
-        """Show the X-ray as stored (pixels[row, column]) with the default window (``default_range``)."""
+        """Show the X-ray (pixels[row, column], as the window turns it: ``set_xray_orientation``) with the default
+        window (``default_range``)."""
         from carmreg.logic.image.field import field_mask
 
         self._fitted_once = False

@@ -41,7 +41,40 @@ def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndar
 
 
 TURNS = tuple(name for name in ORIENTATIONS if name != "as-stored")
-"""The orientations a user may have the X-ray turned by (``--orient-xray``)."""
+"""The orientations a user may have the X-ray turned by (``--orient-xray``, the window's and the Slicer module's
+X-ray orientation)."""
+
+UNDONE_BY = {"as-stored": "as-stored", "mirrored-left-right": "mirrored-left-right",
+             "flipped-up-down": "flipped-up-down", "turned-180": "turned-180", "turned-90": "turned-270",
+             "turned-270": "turned-90"}
+"""The orientation that turns each orientation's image back to the image as stored (a quarter turn: the other one;
+every other orientation undoes itself)."""
+
+
+def turned_size(size_px: tuple[int, int], name: str) -> tuple[int, int]:
+    """(columns, rows) of an image of ``size_px`` (columns, rows) turned by ``name``: swapped by a quarter turn."""
+    return _turned_pair(size_px, name)
+
+
+def stored_uv(uv_px: np.ndarray, name: str, stored_size_px: tuple[int, int]) -> np.ndarray:
+    """Where pixels (u, v) of the image turned by ``name`` lie on the image as stored (``stored_size_px`` =
+    (columns, rows) as stored): the inverse of ``orient_uv``, ``stored_uv(orient_uv(uv, name, s), name, s) == uv``."""
+    return orient_uv(uv_px, UNDONE_BY[name], turned_size(stored_size_px, name))
+
+
+def composed(first: str, then: str) -> str | None:
+    """The orientation that turns an image as ``first`` and then ``then`` do, one after the other; None when that is
+    a transpose (a quarter turn and a mirror), which no ``ORIENTATIONS`` entry is."""
+    probe = np.arange(6).reshape(2, 3)
+    want = ORIENTATIONS[then](ORIENTATIONS[first](probe))
+    return next((name for name, turn in ORIENTATIONS.items()
+                 if turn(probe).shape == want.shape and np.array_equal(turn(probe), want)), None)
+
+
+def stored_image(image: np.ndarray, name: str) -> np.ndarray:
+    """An image on the turned X-ray's grid (a DRR, an overlay: rows, columns[, channels]) put back on the grid of
+    the X-ray as stored; the inverse of ``ORIENTATIONS[name]``."""
+    return np.ascontiguousarray(ORIENTATIONS[UNDONE_BY[name]](image))
 
 
 def _turned_pair(pair, name: str) -> tuple | None:

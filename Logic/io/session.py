@@ -11,10 +11,15 @@ A session records the inputs and the user's work, never derived data:
   fields absent here come from the X-ray file or the defaults;
 - ``ct_points``: CT centroids, ``[{"label": "T12", "position_lps_mm": [x, y, z]}]`` (LPS mm);
 - ``xray_points``: X-ray centroids, ``[{"label": "T12" | null, "uv_px": [column, row]}]`` (detector px,
-  pixel centres at integers);
+  pixel centres at integers, on the image as stored whatever its orientation);
+- ``xray_orientation``: how the window turns the X-ray before showing, clicking and registering it
+  (``image.turn.ORIENTATIONS``; "as-stored" unless the user turned a display stored mirrored or rotated). A
+  session with a turn is written as version 2 (an older CarmReg refuses it rather than show a result computed on
+  the turned image over the stored one); without, as version 1;
 - ``last_result``: a summary of the last registration (pose, P, the geometry it used (isocentre, SOD),
   magnification, mPDE per stage, every level's projected ``uv_px``, fitted or not, PDE and click, the level
-  check, ``ok`` and warnings, ``stale`` when the inputs changed after it, the output folder): the window shows it
+  check, ``ok`` and warnings, ``stale`` when the inputs changed after it, the output folder; pixels on the X-ray
+  as registered, i.e. turned by ``xray_orientation``): the window shows it
   again on reopening (without the DRR, which is recomputed by registering again);
 - ``session_file``: in an autosave only, the session file the work belongs to (so a recovered session keeps
   its name).
@@ -48,7 +53,7 @@ from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
 from carmreg.logic.io.limits import regular_file
 
 FORMAT_NAME = "carmreg-session"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 SESSION_SUFFIX = ".carmreg.json"
 GEOMETRY_FIELDS = ("sdd_mm", "pixel_spacing_mm", "principal_point_px", "sod_mm", "distortion_mm")
 
@@ -62,6 +67,7 @@ class Session:
     geometry_overrides: dict = field(default_factory=dict)
     ct_points: list[dict] = field(default_factory=list)
     xray_points: list[dict] = field(default_factory=list)
+    xray_orientation: str = "as-stored"
     parameters: dict = field(default_factory=dict)
     last_result: dict | None = None
     session_file: str | None = None         # autosave only: the session file this work was saved as
@@ -96,12 +102,13 @@ class Session:
         base = Path(session_path).resolve().parent if session_path else None
         return {
             "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
+            "version": FORMAT_VERSION if self.xray_orientation != "as-stored" else 1,
             "saved_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "data": {"ct": _path_entry(self.ct_path, base), "xray": _path_entry(self.xray_path, base)},
             "geometry_overrides": to_jsonable(self.geometry_overrides),
             "landmarks": {"ct": to_jsonable(_sorted_points(self.ct_points)),
                           "xray": to_jsonable(_sorted_points(self.xray_points))},
+            **({"xray_orientation": self.xray_orientation} if self.xray_orientation != "as-stored" else {}),
             "parameters": to_jsonable(self.parameters),
             "last_result": to_jsonable(self.last_result),
             **({"session_file": str(self.session_file)} if self.session_file else {}),
@@ -132,9 +139,20 @@ class Session:
                       geometry_overrides=_check_overrides(_mapping(doc, "geometry_overrides", where), where),
                       ct_points=_check_ct_points(_list(landmarks, "ct", where), where),
                       xray_points=_check_xray_points(_list(landmarks, "xray", where), where),
+                      xray_orientation=_orientation(doc.get("xray_orientation", "as-stored"), where),
                       parameters=_mapping(doc, "parameters", where),
                       last_result=last_result, session_file=_session_file(doc.get("session_file"), where))
         return session
+
+
+def _orientation(value, where: str) -> str:
+    """The session's X-ray orientation, one of ``image.turn.ORIENTATIONS``."""
+    from carmreg.logic.image.turn import ORIENTATIONS
+
+    if value not in ORIENTATIONS:
+        raise InputFileError(f"{where}: \"xray_orientation\" {quote(value, 40)} is not one of: "
+                             f"{', '.join(ORIENTATIONS)}")
+    return value
 
 
 def _mapping(doc: dict, key: str, where: str) -> dict:

@@ -90,8 +90,9 @@ def refused_display(a) -> str:
     best, stored = a.orientation_gc()
     return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {stored:.2f} "
             "as stored): the display is mirrored or rotated; export the image as acquired (head up, patient's "
-            f"right on the viewer's left) and register again, or have it turned (command line: --orient-xray "
-            f"{a.orientation})")
+            "right on the viewer's left) and register again, or have it turned: X-ray orientation \"shown "
+            f"{a.orientation.replace('-', ' ')}\" (the window's step 1, the Slicer module's Inputs) or, on the "
+            f"command line, --orient-xray {a.orientation}")
 
 
 def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:

@@ -7,12 +7,20 @@ import pytest
 
 from carmreg.logic.errors import CarmRegError
 from carmreg.logic.geometry.camera import CarmIntrinsics
-from carmreg.logic.image.turn import ORIENTATIONS, TURNS, orient_uv, turned_clicks, turned_xray
+from carmreg.logic.image.turn import (
+    ORIENTATIONS,
+    TURNS,
+    UNDONE_BY,
+    composed,
+    orient_uv,
+    stored_image,
+    stored_uv,
+    turned_clicks,
+    turned_size,
+    turned_xray,
+)
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray_image import XrayImage
-
-UNDO = {"mirrored-left-right": "mirrored-left-right", "flipped-up-down": "flipped-up-down",
-        "turned-180": "turned-180", "turned-90": "turned-270", "turned-270": "turned-90"}
 
 
 def _xray() -> XrayImage:
@@ -43,10 +51,29 @@ def test_a_turned_xray_shows_each_pixel_and_click_where_the_turn_puts_it(name):
 @pytest.mark.parametrize("name", TURNS)
 def test_turning_back_restores_the_xray(name):
     xray = _xray()
-    back = turned_xray(turned_xray(xray, name), UNDO[name])
+    back = turned_xray(turned_xray(xray, name), UNDONE_BY[name])
     np.testing.assert_array_equal(back.pixels, xray.pixels)
     assert back.intrinsics == xray.intrinsics
-    np.testing.assert_array_equal(ORIENTATIONS[UNDO[name]](ORIENTATIONS[name](xray.pixels)), xray.pixels)
+    np.testing.assert_array_equal(ORIENTATIONS[UNDONE_BY[name]](ORIENTATIONS[name](xray.pixels)), xray.pixels)
+
+
+@pytest.mark.parametrize("name", ORIENTATIONS)
+def test_points_and_images_on_the_turned_grid_go_back_to_the_stored_one(name):
+    """``stored_uv`` undoes ``orient_uv`` (clicks exported, saved in a session, outputs on Slicer's X-ray volume);
+    ``stored_image`` puts an image drawn on the turned X-ray (a DRR, an RGB overlay) back on the stored grid, each
+    pixel where ``stored_uv`` puts it."""
+    xray = _xray()
+    turned = turned_xray(xray, name)
+    assert turned_size(xray.size_px, name) == turned.size_px
+    v, u = np.mgrid[:5, :7]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float) + [0.25, -0.5]
+    np.testing.assert_allclose(stored_uv(orient_uv(uv, name, xray.size_px), name, xray.size_px), uv, atol=1e-12)
+    np.testing.assert_array_equal(stored_image(turned.pixels, name), xray.pixels)
+    rgb = np.stack([turned.pixels, 2 * turned.pixels, 3 * turned.pixels], axis=-1)
+    np.testing.assert_array_equal(stored_image(rgb, name)[..., 2], 3 * xray.pixels)
+    tu, tv = 4, 1  # a pixel of the turned grid, drawn back where stored_uv says
+    (su, sv), = stored_uv(np.array([[tu, tv]], float), name, xray.size_px).round().astype(int)
+    assert stored_image(turned.pixels, name)[sv, su] == turned.pixels[tv, tu]
 
 
 def test_as_stored_is_the_xray_itself_an_incomplete_geometry_stays_so_and_an_unknown_turn_is_refused():
@@ -71,6 +98,25 @@ def test_a_refused_display_names_the_turn_that_registers_it(name):
                    orientation=name, orientation_scores={"as-stored": 0.2, name: 0.6})
     message = refused_display(a)
     assert f"--orient-xray {name}" in message and "GC 0.60 against 0.20" in message
+    assert f'X-ray orientation "shown {name.replace("-", " ")}"' in message  # the window's and Slicer's choice
     args = build_parser().parse_args(["register", "--ct", "c", "--ct-landmarks", "l", "--xray", "x", "--no-clicks",
                                       "--out", "o", "--orient-xray", name])
     assert args.orient_xray == name
+
+
+def test_turns_compose_as_one_after_the_other_and_a_transpose_is_none():
+    """``composed(first, then)``: the window's X-ray orientation that shows a display refused in ``then`` while shown
+    ``first`` as the CT matches it."""
+    image = np.arange(35).reshape(5, 7)
+    for first in ORIENTATIONS:
+        for then in ORIENTATIONS:
+            name = composed(first, then)
+            want = ORIENTATIONS[then](ORIENTATIONS[first](image))
+            if name is None:
+                assert want.shape == (7, 5) and not any(np.array_equal(f(image), want) for f in ORIENTATIONS.values())
+            else:
+                np.testing.assert_array_equal(ORIENTATIONS[name](image), want)
+    assert composed("as-stored", "mirrored-left-right") == "mirrored-left-right"
+    assert composed("mirrored-left-right", "mirrored-left-right") == "as-stored"
+    assert composed("turned-90", "turned-90") == "turned-180"
+    assert composed("mirrored-left-right", "turned-90") is None  # a transpose

@@ -53,6 +53,22 @@ def test_file_is_readable_json_with_relative_paths_and_survives_moving_the_folde
     assert loaded.ct_path == str(moved / "data" / "ct.nrrd")
 
 
+def test_an_xray_orientation_round_trips_and_makes_the_file_version_2(tmp_path):
+    """A turned X-ray (``image.turn``) is saved with its orientation as version 2, which an older CarmReg refuses
+    (its result lies on the turned image); without a turn the file stays version 1, read as "as-stored"."""
+    session = _session(tmp_path)
+    session.xray_orientation = "turned-90"
+    doc = json.loads(s.save_session(tmp_path / "turned.carmreg.json", session).read_text())
+    assert doc["version"] == 2 and doc["xray_orientation"] == "turned-90"
+    assert s.load_session(tmp_path / "turned.carmreg.json").xray_orientation == "turned-90"
+    assert s.load_session(s.save_session(tmp_path / "plain.carmreg.json", _session(tmp_path))).xray_orientation \
+        == "as-stored"
+    doc["xray_orientation"] = "sideways"
+    (tmp_path / "bad.carmreg.json").write_text(json.dumps(doc))
+    with pytest.raises(InputFileError, match="\"xray_orientation\" 'sideways' is not one of: as-stored"):
+        s.load_session(tmp_path / "bad.carmreg.json")
+
+
 def test_unnamed_ct_point_cannot_become_landmarks():
     session = s.Session(ct_points=[{"label": None, "position_lps_mm": [0, 0, 0]}])
     with pytest.raises(LandmarkError, match="no level name"):
