@@ -271,7 +271,7 @@ def _print_report(result, seconds: float, out) -> None:
     print("pose: " + ", ".join(f"{k} {v:.2f}" for k, v in result.pose.as_dict().items())
           + f"; magnification {result.magnification:.2f}")
     if result.appearance is not None:
-        print(f"X-ray appearance: {result.appearance.summary()}")
+        print(f"X-ray appearance: {result.appearance.summary(result.xray_turned)}")
     if result.level_check:
         from carmreg.logic.report.style import level_summary
 

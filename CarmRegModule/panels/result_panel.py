@@ -353,13 +353,14 @@ class ResultPanel(QtWidgets.QWidget):
             self.level_status_label.setText(f"{status} (OUT OF DATE)")
         self.level_status_label.setStyleSheet(f"color: {status_ink(None)}; font-weight: bold;")
 
-    def set_appearance(self, appearance) -> None:
-        """Show ``result.appearance`` (polarity, how clearly, storage, orientation) or '-'."""
+    def set_appearance(self, appearance, turned: str = "as-stored") -> None:
+        """Show ``result.appearance`` (polarity, how clearly, storage, orientation; ``turned``: the turn the X-ray
+        was registered in, ``RegistrationResult.xray_turned``) or '-'."""
         if appearance is None:
             self.appearance_label.setText("-")
             self.appearance_label.setStyleSheet("")
             return
-        self.appearance_label.setText(appearance.summary())
+        self.appearance_label.setText(appearance.summary(turned))
         self.appearance_label.setStyleSheet("" if appearance.trusted else "color: #ffa94d;")
 
     def set_result(self, result, click_names: list[str] | None = None) -> None:
@@ -378,7 +379,8 @@ class ResultPanel(QtWidgets.QWidget):
         self.png_button.setEnabled(has)
         self.table.setRowCount(0 if not has else len(result.levels))
         self.set_level_check(getattr(result, "level_check", None) if has else None, click_names)
-        self.set_appearance(getattr(result, "appearance", None) if has else None)
+        self.set_appearance(getattr(result, "appearance", None) if has else None,
+                            getattr(result, "xray_turned", "as-stored"))
         if not has:
             self.set_accept_enabled(False, "No result yet")
             self.pose_label.setText("No result yet: run the registration (step 4).")

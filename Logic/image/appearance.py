@@ -327,16 +327,22 @@ class Appearance:
         self.orientation, self.orientation_clear = "mirrored-left-right", False
         self.orientation_decided_by = f"image ({REFINED_ON_MIRROR_WITHOUT_CLICKS})"
 
-    def summary(self) -> str:
+    def summary(self, turned: str = "as-stored") -> str:
         """The appearance in words, for the CLI, the window and the report: polarity (``note``), storage, and the
-        orientation with how clearly and from what it was found."""
+        orientation with how clearly and from what it was found; ``turned``: the turn the user had the file turned
+        by before registering (``image.turn``; result.json ``inputs.xray_turned``), which the orientation is
+        relative to."""
         where = ("at the clicks' poses" if self.orientation_at_clicks is not None else
                  "refined on the image and its mirror" if self.orientation_on_mirror is not None else
                  "on the DRR database")
         how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
         stated = " (as the file states)" if self.storage_from == STORAGE_FROM_FILE else ""
-        return (f"{self.note}; stored as {self.storage.replace('-', ' ')}{stated}; matches the CT "
-                f"{self.orientation.replace('-', ' ')} ({where}{how})")
+        shown = self.orientation.replace("-", " ")
+        if turned != "as-stored":
+            shown = ("as turned" if self.orientation == "as-stored" else f"{shown} of that") + \
+                f" (the file turned {turned.replace('-', ' ')} as asked)"
+        return (f"{self.note}; stored as {self.storage.replace('-', ' ')}{stated}; matches the CT {shown} "
+                f"({where}{how})")
 
     def orientation_gc(self) -> tuple[float, float]:
         """(GC of the orientation taken, GC as stored) from the scores that decided it."""

@@ -101,8 +101,8 @@ def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> L
 def turned_xray(xray: XrayImage, name: str) -> XrayImage:
     """``xray`` turned by ``ORIENTATIONS[name]`` as the user asked (``--orient-xray``): its pixels and its detector
     (``turned_intrinsics``; none while the geometry is incomplete), recorded in ``sources["orientation"]`` (result.json
-    ``inputs.geometry_sources``). "as-stored" returns ``xray`` itself; an unknown name is a CarmRegError naming the
-    choices."""
+    ``inputs.geometry_sources``) and ``meta["turned"]`` (the name; result.json ``inputs.xray_turned``). "as-stored"
+    returns ``xray`` itself; an unknown name is a CarmRegError naming the choices."""
     if name == "as-stored":
         return xray
     if name not in TURNS:
@@ -110,4 +110,5 @@ def turned_xray(xray: XrayImage, name: str) -> XrayImage:
     pixels = np.ascontiguousarray(ORIENTATIONS[name](xray.pixels))
     intrinsics = None if xray.intrinsics is None else turned_intrinsics(xray.intrinsics, name)
     sources = {**xray.sources, "orientation": f"turned {name.replace('-', ' ')} as the user asked, before registering"}
-    return dataclasses.replace(xray, pixels=pixels, intrinsics=intrinsics, sources=sources)
+    return dataclasses.replace(xray, pixels=pixels, intrinsics=intrinsics, sources=sources,
+                               meta={**xray.meta, "turned": name})

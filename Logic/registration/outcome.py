@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from carmreg.logic.geometry.camera import CarmPose, in_detector, project
 from carmreg.logic.geometry.projection_distance import pde_mm
+from carmreg.logic.image.turn import composed
 from carmreg.logic.io.landmarks import level_index
 from carmreg.logic.registration.depth import tx_limits
 from carmreg.logic.registration.levels import (
@@ -60,8 +61,13 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         appearance=state.appearance, field_mask=state.mask,
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                 "xray_landmarks": state.xray_landmarks.source, "geometry_sources": geometry_sources(state),
-                "xray_frame": state.xray.meta.get("frame"),
+                "xray_frame": state.xray.meta.get("frame"), "xray_turned": xray_turned(state),
                 "xray_frames_in_file": state.xray.meta.get("n_frames")})
+
+
+def xray_turned(state: RegistrationState) -> str:
+    """The orientation the user had the X-ray turned by before registering (``image.turn.turned_xray``)."""
+    return state.xray.meta.get("turned", "as-stored")
 
 
 def geometry_sources(state: RegistrationState) -> dict:
@@ -78,21 +84,34 @@ def level_check(state: RegistrationState):
     X-ray's display is refused (``refused_display``); None when the stage did not run."""
     if state.identification is None:
         return None
-    check, refused = state.identification.summary(), refused_display(state.appearance)
+    check, refused = state.identification.summary(), refused_display(state.appearance, xray_turned(state))
     return check.withheld_for(refused) if refused else check
 
 
-def refused_display(a) -> str:
+def refused_display(a, turned: str = "as-stored") -> str:
     """Why the X-ray is refused, in words, when its appearance ``a`` matches the CT best mirrored or turned
-    (``image.appearance``: ``orientation`` other than as stored); "" otherwise."""
+    (``image.appearance``: ``orientation`` other than as given); "" otherwise. ``turned``: the turn the user had the
+    file turned by (``xray_turned``); the turn advised is the file's (``image.turn.composed``: that one, then the
+    one the image matches in)."""
     if a is None or a.orientation == "as-stored":
         return ""
-    best, stored = a.orientation_gc()
-    return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {stored:.2f} "
-            "as stored): the display is mirrored or rotated; export the image as acquired (head up, patient's "
-            "right on the viewer's left) and register again, or have it turned: X-ray orientation \"shown "
-            f"{a.orientation.replace('-', ' ')}\" (the window's step 1, the Slicer module's Inputs) or, on the "
-            f"command line, --orient-xray {a.orientation}")
+    best, given = a.orientation_gc()
+    as_given = "as stored" if turned == "as-stored" else f"turned {turned.replace('-', ' ')} as asked"
+    advice = _turn_advice(composed(turned, a.orientation))
+    return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {given:.2f} "
+            f"{as_given}): the display is mirrored or rotated; export the image as acquired (head up, patient's "
+            f"right on the viewer's left) and register again{advice}")
+
+
+def _turn_advice(name: str | None) -> str:
+    """How to have the file registered in orientation ``name`` (None: no turn CarmReg offers does)."""
+    if name is None:
+        return ""
+    if name == "as-stored":
+        return (", or register the file as stored: X-ray orientation \"shown as stored\" (the window's step 1, the "
+                "Slicer module's Inputs) or, on the command line, without --orient-xray")
+    return (f", or have it turned: X-ray orientation \"shown {name.replace('-', ' ')}\" (the window's step 1, the "
+            f"Slicer module's Inputs) or, on the command line, --orient-xray {name}")
 
 
 def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
@@ -112,7 +131,7 @@ def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:
                         "spacing and the landmarks")
     if state.ct.contains_lps(state.geometry.source_lps_mm(pose)[None], margin_vox=0.0)[0]:
         problems.append("the found X-ray source lies inside the CT volume: degenerate pose")
-    refused = refused_display(state.appearance)
+    refused = refused_display(state.appearance, xray_turned(state))
     if refused:
         problems.append(refused)
     if not refused and state.identification is not None and state.identification.status == "contradicted":

@@ -151,6 +151,11 @@ class RegistrationResult:
     failed_checks: list = field(default_factory=list)  # the messages that make ``ok`` False (also in warnings)
 
     @property
+    def xray_turned(self) -> str:
+        """The orientation the user had the X-ray turned by before registering (``image.turn``; "as-stored")."""
+        return self.inputs.get("xray_turned", "as-stored")
+
+    @property
     def magnification(self) -> float:
         return float(self.geometry.magnification(self.pose))
 

@@ -127,10 +127,10 @@ def _inputs_block(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def _labellings_block(check: LevelCheck | None, appearance=None) -> str:
-    """How the levels were named: the X-ray's appearance as found, the mode and every labelling registered with
-    its score, best first."""
-    seen_as = f"X-ray: {appearance.summary()}. " if appearance is not None else ""
+def _labellings_block(check: LevelCheck | None, appearance=None, turned: str = "as-stored") -> str:
+    """How the levels were named: the X-ray's appearance as found (``turned``: the turn the user had the file turned
+    by), the mode and every labelling registered with its score, best first."""
+    seen_as = f"X-ray: {appearance.summary(turned)}. " if appearance is not None else ""
     if not check:
         return seen_as + "The level names were not checked against the image (level check off)."
     mode = MODE_DESCRIPTION.get(check.mode, str(check.mode))
@@ -261,7 +261,8 @@ def report_figure(result, xray_pixels: np.ndarray, clicked: dict | None = None, 
     size, (inputs,) = fit_text([_inputs_block(doc)], 118, (0.267 - INPUTS_END) * A4_INCHES[1])
     fig.text(0.05, 0.267, inputs, **{**mono, "fontsize": size})
     fig.text(0.05, 0.155, "How the levels were named", fontsize=9, fontweight="bold", va="top")
-    _bottom_blocks(fig, _labellings_block(check, getattr(result, "appearance", None)),
+    _bottom_blocks(fig, _labellings_block(check, getattr(result, "appearance", None),
+                                        getattr(result, "xray_turned", "as-stored")),
                    "Warnings: " + "; ".join(doc["warnings"]) if doc["ok"] and doc["warnings"] else "")
     fig.text(0.05, 0.045, _versions_line(doc), fontsize=6.8, va="top", color="#495057")
     fig.text(0.05, 0.028, "Frames: CT LPS mm; detector (u, v) = (column, row) px, 0-based pixel centres; PDE and "

@@ -44,6 +44,7 @@ def test_a_display_stored_mirrored_and_turned_back_registers_as_the_acquisition(
     assert turned["level_check"]["status"] == "confident" and turned["ok"]
     assert turned["appearance"]["orientation"] == "as-stored"
     assert "mirrored left right as the user asked" in turned["inputs"]["geometry_sources"]["orientation"]
+    assert turned["inputs"]["xray_turned"] == "mirrored-left-right"
     levels = json.loads((sample_case_dir / "ground_truth.json").read_text())["levels"]
     visible = {lb for lb, level in levels.items() if level["visible"]}
     assert {lv["label"] for lv in turned["levels"] if lv["in_image"]} >= visible and len(visible) >= 4

@@ -120,3 +120,30 @@ def test_turns_compose_as_one_after_the_other_and_a_transpose_is_none():
     assert composed("mirrored-left-right", "mirrored-left-right") == "as-stored"
     assert composed("turned-90", "turned-90") == "turned-180"
     assert composed("mirrored-left-right", "turned-90") is None  # a transpose
+
+
+@pytest.mark.parametrize("turned, matches, advised", [
+    ("mirrored-left-right", "mirrored-left-right", "without --orient-xray"),  # the user's turn was not needed
+    ("turned-90", "turned-90", "--orient-xray turned-180"),  # a quarter turn short: the file's half turn advised
+    ("mirrored-left-right", "turned-90", None),  # a transpose: no turn CarmReg offers, only the export
+])
+def test_a_display_refused_after_the_users_turn_advises_the_files_turn(turned, matches, advised):
+    """The orientation a refusal finds is the registered (turned) image's; the turn it advises is the file's
+    (``composed``), and the appearance's words say the file was turned."""
+    from carmreg.logic.image.appearance import Appearance
+    from carmreg.logic.registration.outcome import refused_display
+
+    a = Appearance("bone-dark", "log-display", "image", True, 0.4, 0.22, {}, "bone-dark", "PNG", "bone-dark",
+                   orientation=matches, orientation_scores={"as-stored": 0.2, matches: 0.6})
+    message = refused_display(a, turned)
+    assert f"GC 0.60 against 0.20 turned {turned.replace('-', ' ')} as asked" in message
+    assert "export the image as acquired" in message
+    if advised is None:
+        assert "--orient-xray" not in message and "have it turned" not in message
+    else:
+        assert advised in message
+    assert a.summary(turned).endswith(f"matches the CT {matches.replace('-', ' ')} of that (the file turned "
+                                      f"{turned.replace('-', ' ')} as asked) (on the DRR database)")
+    stored = Appearance("bone-dark", "log-display", "image", True, 0.4, 0.22, {}, "bone-dark", "PNG", "bone-dark")
+    assert "matches the CT as turned (the file turned" in stored.summary(turned)
+    assert stored.summary().endswith("matches the CT as stored (on the DRR database)")
