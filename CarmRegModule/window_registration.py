@@ -311,18 +311,14 @@ class WindowRegistration:
         self.result_panel.set_turn_offer(self.refused_display_turn())
 
     def refused_display_turn(self) -> str | None:
-        """The X-ray orientation that shows the X-ray as the current result found it matches the CT, when that
-        result refused its display as mirrored or rotated (``outcome.refused_display``): the turn it was shown in,
-        then the turn the image matches in (``image.turn.composed``). None without such a result, when the result is
-        out of date, or when no orientation is that turn."""
-        from carmreg.logic.image.turn import composed
+        """The X-ray orientation the current result advises, having refused the display as mirrored or rotated
+        (``outcome.advised_turn``); None without such a result, when the result is out of date or the X-ray gone,
+        or when no orientation is that turn."""
+        from carmreg.logic.registration.outcome import advised_turn
 
-        appearance = getattr(self.result, "appearance", None)
-        if self.result_stale or appearance is None or appearance.orientation == "as-stored":
+        if self.result is None or self.result_stale or self.xray_as_stored is None:
             return None
-        if self.xray_as_stored is None:
-            return None
-        return composed(self.xray_orientation, appearance.orientation)
+        return advised_turn(getattr(self.result, "appearance", None), getattr(self.result, "xray_turned", "as-stored"))
 
     def turn_and_register(self, orientation: str, wait: bool = False) -> None:
         """Show the X-ray in ``orientation`` (one undo step, its points with it) and register again
