@@ -157,7 +157,8 @@ class GeometryPanel(QtWidgets.QGroupBox):
         self.preset_combo.setCurrentIndex(max(index, 0))
         for name, label in self.sources.items():
             label.setText(self._source_text(name))
-        self.size_label.setText(f"Detector: {size[0]} x {size[1]} px (columns x rows), from the image"
+        self.size_label.setText(f"Detector: {size[0]} x {size[1]} px (columns x rows), from the image; every value "
+                                "here is the file's as stored, whatever turn the X-ray is shown in"
                                 if xray is not None else "Load an X-ray to see its geometry")
         if sdd and (sod or sdd):
             sod_eff = nominal_sod_mm(sdd, sod or None)  # 0 here = not set
