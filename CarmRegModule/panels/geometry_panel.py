@@ -106,6 +106,7 @@ class GeometryPanel(QtWidgets.QGroupBox):
         grid.addWidget(self.measure_button, 11, 0, 1, 4)
         self.size_label = QtWidgets.QLabel()
         self.size_label.setObjectName("hint")
+        self.size_label.setWordWrap(True)
         self.magnification_label = QtWidgets.QLabel()
         self.magnification_label.setObjectName("hint")
         grid.addWidget(self.size_label, 13, 0, 1, 4)
