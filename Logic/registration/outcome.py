@@ -91,8 +91,7 @@ def level_check(state: RegistrationState):
 def refused_display(a, turned: str = "as-stored") -> str:
     """Why the X-ray is refused, in words, when its appearance ``a`` matches the CT best mirrored or turned
     (``image.appearance``: ``orientation`` other than as given); "" otherwise. ``turned``: the turn the user had the
-    file turned by (``xray_turned``); the turn advised is the file's (``image.turn.composed``: that one, then the
-    one the image matches in)."""
+    file turned by (``xray_turned``); the turn advised is the file's (``advised_turn``)."""
     if a is None or a.orientation == "as-stored":
         return ""
     best, given = a.orientation_gc()
