@@ -12,10 +12,13 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
    - image agreement: ``A(winner) >= min_similarity`` - a labelling that matches the image poorly has won
      nothing, however large its lead. A is the winner's GC, or the GC of the same pose on the equalised X-ray when
      higher (``agreement``: a processed display lowers the GC of the conversion it was registered on);
-   - landmark fit: ``mPDE(winner) <= landmark_ratio * mPDE(rival) + landmark_slack_mm`` - a labelling the clicks
-     fit clearly worse than its rival has won on image texture alone (seen: GC 0.364 against 0.316 while the
-     clicks fitted 3.19 mm against 1.66 mm, one level off) - and ``mPDE(winner) <= max_landmark_mpde_mm``: the
-     clicks must fit the winner itself (seen: labellings five levels off won at 6 mm);
+   - landmark fit: ``mPDE(winner) <= landmark_ratio * min(mPDE(rival), mPDE(best fit)) + landmark_slack_mm``,
+     the best fit being the other registered labelling the clicks fit best - a labelling the clicks fit clearly
+     worse than another has won on image texture alone (seen: GC 0.364 against 0.316 while the clicks fitted
+     3.19 mm against 1.66 mm, one level off; and, stop 45, a winner one level off at GC 0.46 and 2.71 mm over a
+     runner-up at 3.44 mm, while the right labelling, third, fitted them at 1.00 mm) - and
+     ``mPDE(winner) <= max_landmark_mpde_mm``: the clicks must fit the winner itself (seen: labellings five levels
+     off won at 6 mm);
    - stability: the leading two labellings were refitted, each from the other's pose, from their own tilted about L
      and restarted afresh (``levels._confirm_leaders``, ``_tilt_leaders``, ``_restart_leaders``), and the same one
      led;
@@ -75,12 +78,23 @@ class Evidence:
     winner_labels: tuple = ()
     rival_labels: tuple = ()
     gc_converted: float = float("nan")         # the winner's GC on the X-ray as converted (its score's)
+    best_fit_mpde_mm: float = float("nan")     # the other registered labelling the clicks fit best (nan: none)
+    best_fit_labels: tuple = ()
 
     @classmethod
-    def of(cls, winner: LabellingFit, rival: LabellingFit | None, stable: bool, appearance_ok: bool) -> Evidence:
+    def of(cls, winner: LabellingFit, rival: LabellingFit | None, stable: bool, appearance_ok: bool,
+           best_fit: LabellingFit | None = None) -> Evidence:
         return cls(winner.agreement, winner.mpde_mm, rival.mpde_mm if rival is not None else float("nan"),
                    stable, appearance_ok, tuple(winner.labels), tuple(rival.labels) if rival is not None else (),
-                   winner.similarity)
+                   winner.similarity, best_fit.mpde_mm if best_fit is not None else float("nan"),
+                   tuple(best_fit.labels) if best_fit is not None else ())
+
+    def landmark_rival(self) -> tuple[float, tuple]:
+        """(mPDE, labels) of the labelling the winner's click fit is held against: the rival, or the best-fitting
+        other labelling when the clicks fit that one better."""
+        if np.isfinite(self.best_fit_mpde_mm) and not self.best_fit_mpde_mm >= self.rival_mpde_mm:
+            return self.best_fit_mpde_mm, self.best_fit_labels
+        return self.rival_mpde_mm, self.rival_labels
 
     @classmethod
     def from_checks(cls, checks: dict) -> Evidence:
@@ -90,7 +104,8 @@ class Evidence:
         def number(value) -> float:  # JSON keeps nan and inf as null
             return float("nan") if value is None else float(value)
         return cls(float(checks["image_agreement"]["gc"]), number(fit.get("winner_mpde_mm")),
-                   number(fit.get("rival_mpde_mm")), bool(checks["stability"]["ok"]), bool(checks["appearance"]["ok"]))
+                   number(fit.get("rival_mpde_mm")), bool(checks["stability"]["ok"]), bool(checks["appearance"]["ok"]),
+                   best_fit_mpde_mm=number(fit.get("best_fit_mpde_mm")))
 
 
 def landmark_limit_mm(rival_mpde_mm: float, rule: ConfidenceRule) -> float:
@@ -109,9 +124,11 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
         reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
                        f"{rule.min_similarity:.2f})")
     if landmarks and np.isfinite(e.winner_mpde_mm):
-        limit = landmark_limit_mm(e.rival_mpde_mm, rule)
+        against_mpde_mm, against_labels = e.landmark_rival()
+        limit = landmark_limit_mm(against_mpde_mm, rule)
         ok = bool(e.winner_mpde_mm <= limit)
         checks["landmark_fit"] = {"winner_mpde_mm": e.winner_mpde_mm, "rival_mpde_mm": e.rival_mpde_mm,
+                                  "best_fit_mpde_mm": e.best_fit_mpde_mm, "best_fit_labels": list(e.best_fit_labels),
                                   "limit_mm": limit, "ok": ok}
         winner = ", ".join(e.winner_labels) or "the winner"
         if not ok and e.winner_mpde_mm > rule.max_landmark_mpde_mm:
@@ -119,7 +136,7 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
                            f"{rule.max_landmark_mpde_mm:.1f} mm)")
         elif not ok:
             reasons.append(f"the clicks fit {winner} clearly worse ({e.winner_mpde_mm:.1f} mm) than "
-                           f"{', '.join(e.rival_labels) or 'its rival'} ({e.rival_mpde_mm:.1f} mm)")
+                           f"{', '.join(against_labels) or 'its rival'} ({against_mpde_mm:.1f} mm)")
     checks["stability"] = {"ok": bool(e.stable)}
     if not e.stable:
         reasons.append("the leading labelling changed when the two best were searched again (from each other's "
@@ -166,7 +183,9 @@ def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: Confidenc
     d = float(others[0].score - reference.score)
     runner_up = others[0] if reference is winner else winner
     rival = others[0] if reference is winner else reference
-    status, reasons, checks = judge(d, Evidence.of(winner, rival, stable, appearance_clear), rule)
+    fitted = [f for f in ranked if f is not winner and np.isfinite(f.mpde_mm)]
+    best_fit = min(fitted, key=lambda f: f.mpde_mm) if fitted else None
+    status, reasons, checks = judge(d, Evidence.of(winner, rival, stable, appearance_clear, best_fit), rule)
     return Verdict(status, d, winner, runner_up, reasons, checks)
 
 

@@ -137,6 +137,27 @@ def test_a_winner_the_clicks_fit_clearly_worse_is_never_confident():
     assert decide([wrong, right], right, RULE).status == "ambiguous"
 
 
+def test_a_winner_the_clicks_fit_clearly_worse_than_a_third_labelling_is_never_confident():
+    """Stop 45's report case 255 (flat panel, linear-intensity DICOM, unnamed clicks on T4-T6): T5-T7 won at GC 0.46
+    and 2.71 mm by a margin of 0.064 over T3-T5 (3.44 mm), while the right T4-T6, third at GC 0.30, fitted the
+    clicks at 1.00 mm. The winner's fit is held against the best-fitting other labelling too: ambiguous, naming it;
+    without that third labelling it stays confident; a worse-fitting third changes nothing. Recorded, it is judged
+    again the same."""
+    wrong, runner_up = _h(["T5", "T6", "T7"], 0.551, gc=0.464, mpde_mm=2.71), _h(["T3", "T4", "T5"], 0.615,
+                                                                                  gc=0.405, mpde_mm=3.44)
+    right = _h(["T4", "T5", "T6"], 0.699, gc=0.303, mpde_mm=1.00)
+    v = decide([wrong, runner_up, right], None, RULE)
+    assert v.status == "ambiguous" and v.runner_up is runner_up
+    assert v.reasons == ["the clicks fit T5, T6, T7 clearly worse (2.7 mm) than T4, T5, T6 (1.0 mm)"]
+    fit = v.checks["landmark_fit"]
+    assert fit["limit_mm"] == pytest.approx(1.5 * 1.00 + 0.5) and fit["rival_mpde_mm"] == pytest.approx(3.44)
+    assert fit["best_fit_labels"] == ["T4", "T5", "T6"]
+    assert judge(v.margin, Evidence.from_checks(json.loads(json.dumps(v.checks))), RULE)[0] == "ambiguous"
+    assert decide([wrong, runner_up], None, RULE).status == "confident"
+    right.refine.mpde_mm = 1.5  # within: 2.71 <= 1.5 x 1.5 + 0.5 = 2.75
+    assert decide([wrong, runner_up, right], None, RULE).status == "confident"
+
+
 def test_a_winner_the_clicks_fit_poorly_in_absolute_terms_is_never_confident():
     """5.0 mm against a rival's 4.0 mm passes the relative limit (6.5 mm) but not the 4 mm cap."""
     a, b = _h(["T5"], 0.50, mpde_mm=5.0), _h(["T6"], 0.60, mpde_mm=4.0)
