@@ -411,7 +411,14 @@ def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refineme
     check = _register(sample, simulated, clicks, drr_cache_dir)[0].level_check
     assert (check.status, check.assigned_labels, check.winner_labels, check.runner_up_labels) == \
         (full.status, full.assigned_labels, full.winner_labels, full.runner_up_labels)
-    assert check.margin == full.margin and check.checks == full.checks
+    assert check.margin == full.margin
+
+    def leaders_checks(checks: dict) -> dict:
+        """The checks but the best-fitting other labelling's mPDE and the limit it sets: that labelling (T5-T7
+        here) is one of those stopped, so its click fit is where it stopped, a little off the full one's."""
+        fit = {k: v for k, v in checks["landmark_fit"].items() if k not in ("best_fit_mpde_mm", "limit_mm")}
+        return {**checks, "landmark_fit": fit}
+    assert leaders_checks(check.checks) == leaders_checks(full.checks)
     stopped = [h for h in check.hypotheses if h["stopped_at_evaluations"]]
     assert stopped, "no refinement was stopped on this case: the test no longer tests stopping"
     evaluations = {id(c): sum(cv["evaluations"][-1] for h in c.hypotheses for cv in h["start_curves"])
