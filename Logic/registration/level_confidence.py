@@ -13,7 +13,8 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      nothing, however large its lead. A is the winner's GC, or the GC of the same pose on the equalised X-ray when
      higher (``agreement``: a processed display lowers the GC of the conversion it was registered on);
    - landmark fit: ``mPDE(winner) <= landmark_ratio * min(mPDE(rival), mPDE(best fit)) + landmark_slack_mm``,
-     the best fit being the other registered labelling the clicks fit best - a labelling the clicks fit clearly
+     the best fit being the other registered labelling the clicks fit best (one whose refinement stopped as
+     hopeless counts with the fit it reached: ``early_stop``) - a labelling the clicks fit clearly
      worse than another has won on image texture alone (seen: GC 0.364 against 0.316 while the clicks fitted
      3.19 mm against 1.66 mm, one level off; and, stop 45, a winner one level off at GC 0.46 and 2.71 mm over a
      runner-up at 3.44 mm, while the right labelling, third, fitted them at 1.00 mm) - and
