@@ -15,6 +15,7 @@ import os
 
 import numpy as np
 
+from carmreg.logic.image.appearance import POLARITIES
 from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import METRICS
 
@@ -34,7 +35,7 @@ DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "Distor
 with no DistortionMm given gets its pincushion estimated from the image (``registration.pincushion``); Polarity:
 auto (found from the image against the CT), bone-dark or bone-bright; XrayOrientation: ``image.turn.ORIENTATIONS``
 (module docstring)."""
-POLARITY_CHOICES = ("auto", "bone-dark", "bone-bright")
+POLARITY_CHOICES = ("auto", *POLARITIES)
 ORIENTATION_CHOICES = tuple(ORIENTATIONS)
 
 

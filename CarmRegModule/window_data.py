@@ -121,7 +121,10 @@ class WindowData:
             self.undo_stack.push(_TurnXray(self, self.xray_orientation, name))
 
     def _apply_orientation(self, name: str) -> None:
-        """Turn the shown X-ray to ``name`` and move the X-ray points with it (``_TurnXray`` does and undoes this)."""
+        """Turn the shown X-ray to ``name`` and move the X-ray points with it (``_TurnXray`` does and undoes this;
+        reopening a session, already so turned: nothing to do)."""
+        if name == self.xray_orientation:
+            return
         old, size = self.xray_orientation, self.xray_as_stored.size_px
         self.xray_orientation = name
         self.xray_store.map_positions(lambda uv: orient_uv(stored_uv(uv, old, size), name, size))
