@@ -171,6 +171,14 @@ def judge(d: float, e: Evidence, rule: ConfidenceRule) -> tuple[str, list[str], 
     return status, [], checks
 
 
+def best_click_fit(fits: list[LabellingFit], winner: LabellingFit) -> LabellingFit | None:
+    """The registered labelling other than ``winner`` the clicks fit best (lowest click mPDE; one stopped as
+    hopeless counts with the fit it reached), None when there is none: the landmark check's best fit
+    (``decide``)."""
+    fitted = [f for f in fits if f.refined and f is not winner and np.isfinite(f.mpde_mm)]
+    return min(fitted, key=lambda f: f.mpde_mm) if fitted else None
+
+
 def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: ConfidenceRule, *, stable: bool = True,
            appearance_clear: bool = True) -> Verdict:
     """The verdict over the registered labellings (module docstring); ``given``: the surgeon's labelling."""
@@ -184,8 +192,7 @@ def decide(fits: list[LabellingFit], given: LabellingFit | None, rule: Confidenc
     d = float(others[0].score - reference.score)
     runner_up = others[0] if reference is winner else winner
     rival = others[0] if reference is winner else reference
-    fitted = [f for f in ranked if f is not winner and np.isfinite(f.mpde_mm)]
-    best_fit = min(fitted, key=lambda f: f.mpde_mm) if fitted else None
+    best_fit = best_click_fit(ranked, winner)
     status, reasons, checks = judge(d, Evidence.of(winner, rival, stable, appearance_clear, best_fit), rule)
     return Verdict(status, d, winner, runner_up, reasons, checks)
 

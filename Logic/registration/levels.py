@@ -94,9 +94,11 @@ from carmreg.logic.registration.level_confidence import (
     ConfidenceRule,
     Evidence,
     Verdict,
+    best_click_fit,
     check_results,
     decide,
     decide_image_only,
+    landmark_limit_mm,
 )
 
 
@@ -108,6 +110,7 @@ class IdentifyParameters:
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
     restart_leaders: bool = True            # and restart both afresh from their own poses
     tilt_leaders_deg: float = 8.0           # and refit both from their poses tilted -+ this about L (0: not)
+    challenge_best_fit: bool = True         # give the best click fit the leaders' searches when it beats theirs
     stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
     stop_rejoined: bool = True              # stop refits that settle back at their labelling's pose (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
@@ -263,6 +266,42 @@ def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float, st
     return _leader(fits) is leader
 
 
+def _challenger(fits: list[LabellingFit], rule: ConfidenceRule) -> LabellingFit | None:
+    """The best click fit when it is not one of the leading two and the leader's clicks fit clearly worse than
+    it (the landmark check, ``level_confidence.landmark_limit_mm``): a labelling whose image search may have
+    missed its pose. None otherwise."""
+    leading = _leading_two(fits)
+    if not leading:
+        return None
+    best = best_click_fit(fits, leading[0])
+    if best is None or any(best is f for f in leading):
+        return None
+    return best if leading[0].mpde_mm > landmark_limit_mm(best.mpde_mm, rule) else None
+
+
+def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], rule: ConfidenceRule, tilt_deg: float,
+                        stop_rejoined: bool) -> LabellingFit | None:
+    """Give the challenger (``_challenger``) the searches the leaders get: completed when stopped early, refitted
+    from the leader's pose, from its own tilted -+``tilt_deg`` about L, and restarted afresh, keeping its best
+    (module docstring); returns it, None when there is none. Seen, stop 45: report case 255's flat panel, T4-T6
+    clicked, third at GC 0.30 with the clicks at 1.00 mm, while T5-T7 led at GC 0.46 and 2.71 mm; the true pose of
+    T4-T6 scores GC 0.475."""
+    challenger = _challenger(fits, rule)
+    if challenger is None:
+        return None
+    if challenger.stopped_at is not None:
+        complete(ctx, challenger)
+    refit_from(ctx, challenger, _leader(fits).pose.copy(), stop_rejoined)
+    tilt = np.zeros(len(POSE_NAMES))
+    tilt[POSE_NAMES.index("ry_deg")] = tilt_deg
+    if tilt_deg > 0:
+        pose = challenger.pose.copy()
+        for start in (pose - tilt, pose + tilt):
+            refit_from(ctx, challenger, start, stop_rejoined)
+    restart(ctx, challenger, stop_rejoined)
+    return challenger
+
+
 def _restart_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: bool) -> bool:
     """Restart the image refinement of each of the leading two afresh from its own refined pose
     (``labelling_fit.restart``), each keeping its better refinement; True when the same labelling still leads.
@@ -335,6 +374,11 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
+    challenged = _challenge_best_fit(ctx, fits, p.rule, p.tilt_leaders_deg, p.stop_rejoined) \
+        if p.challenge_best_fit else None
+    if challenged is not None:
+        _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
+        _settle(ctx, fits, keep)
     stable = True
     if p.confirm_leaders:
         stable = _confirm_leaders(ctx, fits, p.stop_rejoined)
@@ -356,9 +400,10 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
             appearance_clear = judge_appearance(unblocked.winner)
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
+    checks = {**verdict.checks, "challenged": list(challenged.labels) if challenged is not None else None}
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
-                               click_indices=plan.used, reasons=verdict.reasons, checks=verdict.checks)
+                               click_indices=plan.used, reasons=verdict.reasons, checks=checks)
 
 
 # ----------------------------------------------------------------------------------------------- no clicks

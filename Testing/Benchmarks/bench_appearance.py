@@ -239,6 +239,13 @@ def drawn_through(geometry: dict):
                                        geometry["pixel_spacing_mm"]).distort
 
 
+def _hypotheses(level_check: dict) -> list[dict]:
+    """Every registered labelling of the run, compactly (labels, score, GC, click mPDE, whether registered, where a
+    hopeless refinement stopped): enough to replay a confidence rule on the recorded runs."""
+    keys = ("labels", "score", "similarity", "agreement", "mpde_mm", "refined", "stopped_at_evaluations", "starts")
+    return [{k: h.get(k) for k in keys} for h in level_check.get("hypotheses") or []]
+
+
 def score(mode: str, code: int, result: dict | None, truth: dict, given: list, centroids: dict) -> dict:
     """The run's answer against the truth (module docstring)."""
     row: dict = {"exit": code}
@@ -248,7 +255,7 @@ def score(mode: str, code: int, result: dict | None, truth: dict, given: list, c
     row.update(ok=result.get("ok"), status=lc.get("status"), margin=lc.get("margin"),
                assigned=lc.get("assigned_labels"), winner=lc.get("winner_labels"),
                warnings=result.get("warnings", [])[:4], appearance=result.get("appearance"),
-               checks=lc.get("checks"), reasons=lc.get("reasons"))
+               checks=lc.get("checks"), reasons=lc.get("reasons"), hypotheses=_hypotheses(lc))
     stages = {st.get("name"): st for st in result.get("stages", [])}
     row["stage_seconds"] = {k: st.get("seconds") for k, st in stages.items()}
     row["db_from_cache"] = stages.get("database", {}).get("from_cache")
