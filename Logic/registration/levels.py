@@ -318,6 +318,22 @@ def _restart_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: b
     return _leader(fits) is leader
 
 
+def _search_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None) -> bool:
+    """The leading two searched again: from each other's pose, from their own tilted, and afresh (each as
+    ``p`` asks), every stage followed by the contest's neighbours and ``_settle``; True when no stage changed the
+    lead (the rule's stability check)."""
+    stable = True
+    for wanted, stage in ((p.confirm_leaders, lambda: _confirm_leaders(ctx, fits, p.stop_rejoined)),
+                          (p.tilt_leaders_deg > 0,
+                           lambda: _tilt_leaders(ctx, fits, p.tilt_leaders_deg, p.stop_rejoined)),
+                          (p.restart_leaders, lambda: _restart_leaders(ctx, fits, p.stop_rejoined))):
+        if wanted:
+            stable = stage() and stable
+            _contest(ctx, fits, [], keep, p.stop_hopeless)  # a new leader is compared with its neighbours too
+            _settle(ctx, fits, keep)
+    return stable
+
+
 @dataclass
 class ContestPlan:
     """The labellings of the clicks before any image registration (``plan_contest``)."""
@@ -374,24 +390,15 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
+    stable = _search_leaders(ctx, fits, p, keep)
+    leading = _leading_two(fits)
     challenged = _challenge_best_fit(ctx, fits, p.rule, p.tilt_leaders_deg, p.stop_rejoined) \
         if p.challenge_best_fit else None
     if challenged is not None:
         _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
         _settle(ctx, fits, keep)
-    stable = True
-    if p.confirm_leaders:
-        stable = _confirm_leaders(ctx, fits, p.stop_rejoined)
-        _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
-        _settle(ctx, fits, keep)
-    if p.tilt_leaders_deg > 0:
-        stable = _tilt_leaders(ctx, fits, p.tilt_leaders_deg, p.stop_rejoined) and stable
-        _contest(ctx, fits, [], keep, stop)
-        _settle(ctx, fits, keep)
-    if p.restart_leaders:
-        stable = _restart_leaders(ctx, fits, p.stop_rejoined) and stable
-        _contest(ctx, fits, [], keep, stop)
-        _settle(ctx, fits, keep)
+        if [id(f) for f in _leading_two(fits)] != [id(f) for f in leading]:
+            stable = _search_leaders(ctx, fits, p, keep) and stable
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)
     if judge_appearance is not None:

@@ -198,18 +198,23 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
 def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11,
                     appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70,
                     restarted: dict | None = None, restarts: list | None = None, tilted: dict | None = None,
-                    tilts: list | None = None) -> list:
+                    tilts: list | None = None, outcomes: dict | None = None) -> list:
     """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
     0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
     indices registered, in order. ``restarted``: {index: (GC, score)} a restart (``labelling_fit.restart``) of that
     labelling reaches (others: unchanged); ``restarts`` collects the indices restarted; ``tilted``: {index: (GC,
     score)} a refit from its pose tilted about L (``levels._tilt_leaders``: a start whose ``ry`` is not 0) reaches
-    (others: unchanged); ``tilts`` collects (index, tilt in degrees) of those refits. The contest's control flow is
-    the product's own."""
+    (others: unchanged); ``tilts`` collects (index, tilt in degrees) of those refits; ``outcomes``: {index: (GC,
+    score, click mPDE)} any other registration of that labelling reaches instead. A refit keeps the better of its
+    refinements, as the product's does. The contest's control flow is the product's own."""
     import carmreg.logic.registration.levels as levels
 
     fits = [LabellingFit([f"X{i}"], i, np.zeros((1, 3)), np.zeros((1, 2))) for i in range(n)]
     order = []
+
+    def keep_better(fit, gc, score, mpde_mm=1.0):
+        if fit.refine is None or score < fit.refine.objective_end:
+            fit.refine = RefineResult(np.zeros(6), 0.0, gc, mpde_mm, 1, objective_end=score)
 
     def register(ctx, fit, start_pose=None, give_up=None):  # nothing is stopped: every score is final
         i = fits.index(fit)
@@ -220,12 +225,11 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
             if tilts is not None:
                 tilts.append((i, tilt))
             if i in (tilted or {}):
-                gc, score = tilted[i]
-                fit.refine = RefineResult(np.zeros(6), 0.0, gc, 1.0, 1, objective_end=score)
+                keep_better(fit, *tilted[i])
             return fit
         good = i == truth
-        fit.refine = RefineResult(np.zeros(6), 0.0, truth_gc if good else gc_of_the_others, 1.0, 1,
-                                  objective_end=(0.30 if good else 0.70) + 0.001 * i)
+        keep_better(fit, *(outcomes or {}).get(i, (truth_gc if good else gc_of_the_others,
+                                                   (0.30 if good else 0.70) + 0.001 * i)))
         return fit
 
     def restart(ctx, fit, stop_rejoined=False):
@@ -297,6 +301,34 @@ def test_the_leading_two_are_refitted_tilted_about_l_and_a_rival_that_then_leads
                                tilted={3: (0.61, 0.20)})
     assert ident.winner.labels == ["X3"] and ident.status == "ambiguous"
     assert not ident.checks["stability"]["ok"]
+
+
+def test_a_third_labelling_the_clicks_fit_clearly_better_gets_the_leaders_searches(monkeypatch):
+    """Stop 45's report case 255: T5-T7 (X3) led at GC 0.464 with the clicks at 2.71 mm over T3-T5 (X2, 3.44 mm);
+    the right T4-T6 (X4), third at GC 0.303, fitted them at 1.00 mm, and its true pose scores GC 0.475. The best
+    click fit, not among the leading two and beating the leader's click fit, is challenged: refitted from the
+    leader's pose, from its own tilted about L, and restarted. When that finds its pose it leads, and the leading
+    two are then searched again as always: confident. When it does not, the leader's answer stays ambiguous."""
+    staged = {3: (0.464, 0.551, 2.71), 2: (0.405, 0.615, 3.44), 4: (0.303, 0.699, 1.00)}
+    staged.update({i: (0.20, 0.80 + 0.001 * i, 3.0) for i in (0, 1, 5, 6)})
+    restarts, tilts = [], []
+    _, ident = _staged_contest(monkeypatch, truth=3, gc_of_the_others=0.20, first=[2, 3, 4], n=7, outcomes=staged,
+                               restarted={4: (0.475, 0.50)}, restarts=restarts, tilts=tilts)
+    assert ident.checks["challenged"] == ["X4"] and ident.winner.labels == ["X4"] and ident.status == "confident"
+    assert (4, -8.0) in tilts and (4, 8.0) in tilts and restarts.count(4) == 2  # challenged, then as a leader
+    assert ident.runner_up.labels == ["X3"] and ident.checks["stability"]["ok"]
+    # the challenge finds nothing better: the leader stays, ambiguous by its click fit against X4's
+    restarts.clear()
+    _, ident = _staged_contest(monkeypatch, truth=3, gc_of_the_others=0.20, first=[2, 3, 4], n=7, outcomes=staged,
+                               restarts=restarts)
+    assert ident.checks["challenged"] == ["X4"] and ident.winner.labels == ["X3"] and ident.status == "ambiguous"
+    assert sorted(restarts) == [2, 3, 4] and not ident.checks["landmark_fit"]["ok"]
+    # a third labelling whose click fit the leader's is within the limit of is not challenged
+    staged[4] = (0.303, 0.699, 1.6)  # 2.71 <= 1.5 x 1.6 + 0.5
+    restarts.clear()
+    _, ident = _staged_contest(monkeypatch, truth=3, gc_of_the_others=0.20, first=[2, 3, 4], n=7, outcomes=staged,
+                               restarts=restarts)
+    assert ident.checks["challenged"] is None and sorted(restarts) == [2, 3] and ident.status == "confident"
 
 
 def test_a_restart_that_hands_the_lead_to_the_other_leader_is_not_stable(monkeypatch):
