@@ -17,7 +17,8 @@ Every labelling of the clicks has been registered and scored (``labelling_fit``:
      hopeless counts with the fit it reached: ``early_stop``) - a labelling the clicks fit clearly
      worse than another has won on image texture alone (seen: GC 0.364 against 0.316 while the clicks fitted
      3.19 mm against 1.66 mm, one level off; and, stop 45, a winner one level off at GC 0.46 and 2.71 mm over a
-     runner-up at 3.44 mm, while the right labelling, third, fitted them at 1.00 mm) - and
+     runner-up at 3.44 mm, while the right labelling, third, fitted them at 1.00 mm; such a best fit is first given
+     the leaders' searches, ``levels._challenge_best_fit``, and then won) - and
      ``mPDE(winner) <= max_landmark_mpde_mm``: the clicks must fit the winner itself (seen: labellings five levels
      off won at 6 mm);
    - stability: the leading two labellings were refitted, each from the other's pose, from their own tilted about L

@@ -37,6 +37,15 @@ whose levels not clicked land far off (seen, stop 40: case 181's flat panels, T1
 degrees off and the other levels 4-9 mm off; restarted, 0.75-1.39 mm); until stop 41 only a leader under the
 floor or beyond the cap was restarted. A lead that changes hands there is not stable either.
 
+Then the labelling the clicks fit best, when it is not one of the leading two and the leader's clicks fit clearly
+worse than it (the confidence rule's landmark check), is *challenged* (``_challenge_best_fit``): it gets the
+leaders' searches (from the leader's pose, from its own tilted -+``tilt_leaders_deg``, afresh), since its image
+search may have missed its pose (seen, stop 45: report case 255's flat panel, unnamed clicks on T4-T6: T5-T7 led at
+GC 0.46 with the clicks at 2.71 mm while T4-T6, third at GC 0.30, fitted them at 1.00 mm; its true pose scores GC
+0.475). When that changes the leading two, they are searched again as above (``_search_leaders``), so a challenger
+that takes the lead has beaten the old leader refitted from its pose too. The landmark check still holds the winner
+against the challenger's click fit whatever the challenge found.
+
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
 the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
 rest of its search could only polish the pose the labelling already has. Stop 41, on the appearance benchmark's
