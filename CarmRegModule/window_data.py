@@ -67,16 +67,20 @@ class WindowData:
     def set_xray_image(self, xray, path: str | None = None, overrides: dict | None = None) -> None:
         """Show ``xray`` (read from ``path``, as stored) with its geometry, turned by the X-ray orientation
         (``set_xray_orientation``). Another X-ray file than the one shown takes the clicks of the previous image away
-        (``_drop_clicks_of_previous_xray``) and is shown as stored."""
+        (``_drop_clicks_of_previous_xray``) and is shown as stored; the file a session named but could not find,
+        found again, is shown turned as the session had it (its points, kept as stored, turn with it)."""
         first = self.xray_as_stored is None or self.xray_path != path
         if first and self.xray_as_stored is not None and path is not None:  # another file replaces the one shown
             self._drop_clicks_of_previous_xray()
+        missed = self.xray_orientation if self.xray_as_stored is None and path and path == self.xray_path else None
         if first:
             self.xray_orientation = "as-stored"
         self.xray_as_stored, self.xray_path = xray, path
         self.geometry_overrides = dict(overrides or {})
         self.geometry_panel.set_xray(xray, self.geometry_overrides)
         self._show_xray(pixels_changed=first or xray is None)
+        if missed is not None and xray is not None:
+            self._apply_orientation(missed)
 
     def _show_xray(self, pixels_changed: bool) -> None:
         """``self.xray``: the stored X-ray turned by ``self.xray_orientation``: what the view shows, the clicks lie on

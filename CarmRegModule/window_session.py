@@ -33,7 +33,7 @@ class WindowSession:
             ct_path=self.ct_path, xray_path=self.xray_path,
             geometry_overrides={k: v for k, v in self.geometry_overrides.items()},
             ct_points=self.ct_store.to_records(), xray_points=xray_points,
-            xray_orientation=self.xray_orientation if self.xray_as_stored is not None else "as-stored",
+            xray_orientation=self.xray_orientation,
             parameters=self.registration_panel.parameters(),
             last_result=None if self.last_result_summary is None else {**self.last_result_summary,
                                                                        "stale": bool(self.result_stale)},
@@ -55,7 +55,9 @@ class WindowSession:
         self.restore_session(session_io.load_session(path), str(path))
 
     def restore_session(self, session: session_io.Session, path: str | None, dirty: bool = False) -> None:
-        """Load data and points from a Session; missing data files are reported, points are kept."""
+        """Load data and points from a Session; missing data files are reported, points are kept, and so are the
+        missing files' paths and the X-ray's orientation: saved again, the session still names them, and the same X-ray
+        file loaded later is shown turned as the session had it (``set_xray_image``)."""
         self.new_session(ask=False)
         problems = []
         if session.ct_path:
@@ -63,11 +65,13 @@ class WindowSession:
                 self.load_ct(session.ct_path)
             except CarmRegError as exc:
                 problems.append(str(exc))
+                self.ct_path = session.ct_path
         if session.xray_path:
             try:
                 self.load_xray(session.xray_path, session.geometry_overrides)
             except CarmRegError as exc:
                 problems.append(str(exc))
+                self.xray_path, self.xray_orientation = session.xray_path, session.xray_orientation
         self.geometry_overrides = dict(session.geometry_overrides)
         self.ct_store.replace_all([p["label"] for p in session.ct_points],
                                   [p["position_lps_mm"] for p in session.ct_points], undoable=False)

@@ -93,6 +93,34 @@ def test_a_display_stored_turned_is_turned_back_undoably_kept_on_disk_as_stored_
     assert window.xray_orientation == "as-stored" and combo.currentData() == "as-stored"
 
 
+def test_a_session_whose_turned_xray_is_missing_keeps_its_path_turn_and_points_until_it_is_found(
+        window, synthetic_case, tmp_path):
+    """Reopened without its X-ray (moved, a drive not mounted), a session with a turn is reported, and saved again
+    it still names the file and the turn; the file found again is shown turned, its points with it."""
+    xray_path, clicks_path, uv_stored = _stored_turned(synthetic_case, tmp_path)
+    window.load_ct(synthetic_case.ct_path)
+    window.load_xray(xray_path)
+    window.import_xray_landmarks(clicks_path)
+    window.set_xray_orientation(TURN_BACK)
+    session = window.save_session(tmp_path / "work")
+    away = xray_path.with_name("moved.dcm")
+    xray_path.rename(away)
+    window.open_session(session)
+    assert "X-ray file not found" in window.dialogs.messages[-1][1] and window.xray is None
+    assert not window.orientation_combo.isEnabled()
+    np.testing.assert_allclose(_points(window), uv_stored, atol=1e-9)  # kept as stored: no image to turn them on
+    saved = json.loads(window.save_session(tmp_path / "again").read_text())
+    assert saved["version"] == 2 and saved["xray_orientation"] == TURN_BACK
+    assert saved["data"]["xray"]["absolute"] == str(xray_path)
+    np.testing.assert_allclose([p["uv_px"] for p in saved["landmarks"]["xray"]], uv_stored, atol=1e-9)
+    away.rename(xray_path)
+    window.load_xray(xray_path)
+    assert window.xray_orientation == TURN_BACK and window.orientation_combo.currentData() == TURN_BACK
+    np.testing.assert_allclose(_points(window), synthetic_case.uv_px[1:4], atol=1e-9)
+    window.load_xray(synthetic_case.xray_path)  # another file: as stored, as always
+    assert window.xray_orientation == "as-stored"
+
+
 def test_without_an_xray_there_is_nothing_to_turn_and_a_session_without_a_turn_stays_version_1(window, tmp_path):
     from carmreg.logic.errors import InputFileError
 
