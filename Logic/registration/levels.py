@@ -267,12 +267,19 @@ def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float, st
     if not ranked:
         return True
     leader = ranked[0]
+    for f in ranked:
+        _refit_tilted(ctx, f, tilt_deg, stop_rejoined)
+    return _leader(fits) is leader
+
+
+def _refit_tilted(ctx: FitContext, fit: LabellingFit, tilt_deg: float, stop_rejoined: bool) -> None:
+    """Refit ``fit`` from its refined pose tilted cranio-caudally (``ry_deg``) by -``tilt_deg``, then from it
+    tilted by +``tilt_deg`` (the same pose both times: the one it had before either refit)."""
     tilt = np.zeros(len(POSE_NAMES))
     tilt[POSE_NAMES.index("ry_deg")] = tilt_deg
-    for f in ranked:
-        for start in (f.pose - tilt, f.pose + tilt):
-            refit_from(ctx, f, start, stop_rejoined)
-    return _leader(fits) is leader
+    pose = fit.pose.copy()
+    for start in (pose - tilt, pose + tilt):
+        refit_from(ctx, fit, start, stop_rejoined)
 
 
 def _challenger(fits: list[LabellingFit], rule: ConfidenceRule) -> LabellingFit | None:
@@ -301,12 +308,8 @@ def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], rule: Confide
     if challenger.stopped_at is not None:
         complete(ctx, challenger)
     refit_from(ctx, challenger, _leader(fits).pose.copy(), stop_rejoined)
-    tilt = np.zeros(len(POSE_NAMES))
-    tilt[POSE_NAMES.index("ry_deg")] = tilt_deg
     if tilt_deg > 0:
-        pose = challenger.pose.copy()
-        for start in (pose - tilt, pose + tilt):
-            refit_from(ctx, challenger, start, stop_rejoined)
+        _refit_tilted(ctx, challenger, tilt_deg, stop_rejoined)
     restart(ctx, challenger, stop_rejoined)
     return challenger
 
