@@ -410,11 +410,19 @@ class AppearanceChecks:
         most plausible of 11: taken bone bright, unclear, on three bone-dark images; the contest on the inverted
         image then won with T1-T3 at GC 0.22-0.27, ambiguous, where under bone dark T10-T12 wins at GC 0.81). A
         winner the polarity was judged on left it unclear itself: the image cannot tell, and a second contest only
-        costs time (seen: large patients stored bone bright, 5-25 s more a run, never taken)."""
+        costs time (seen: large patients stored bone bright, 5-25 s more a run, never taken) - unless the polarity
+        was taken from that very evidence (``REFINED_AT_CLICKS``) although at the winner the other polarity agreed
+        better with the image (``ClickPolarity.prefers_other``: the polarity was taken where the clicks fitted, on
+        other labellings). Seen, stop 46: fresh report case 271's flat-panel DICOM without a sign, stored bone
+        bright, unnamed clicks on T8-T10: judged on T3-T8, bone dark was taken (its registration kept the clicks at
+        GC 0.11, bone bright's did not, at 0.29); T6-T8 then won, GC 0.29 bone bright against -0.07 bone dark."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
-        return (a is not None and cp is not None and not a.clear and p.polarity not in POLARITIES
-                and not state.xray.polarity_stated and a.orientation == "as-stored"
-                and not _judged(winner, cp.labels) and not explains_the_image(winner, p.identify.rule))
+        if (a is None or cp is None or a.clear or p.polarity in POLARITIES or state.xray.polarity_stated
+                or a.orientation != "as-stored" or explains_the_image(winner, p.identify.rule)):
+            return False
+        if not _judged(winner, cp.labels):
+            return True
+        return a.decided_by == f"image ({REFINED_AT_CLICKS})" and cp.prefers_other(winner.labels, a.polarity)
 
     def contest_under_other_polarity(self, state: RegistrationState, first: LevelIdentification,
                                      contest: Callable[[], LevelIdentification]) -> LevelIdentification:

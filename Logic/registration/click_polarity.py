@@ -85,6 +85,14 @@ class ClickPolarity:
     labels: list            # the labellings judged, as level names
     dark_storage: str       # how the bone-dark image was converted ("linear-intensity" | "log-display")
 
+    def prefers_other(self, labels: list, polarity: str) -> bool:
+        """Whether the judged labelling ``labels`` (level names) reached a higher GC under another polarity than
+        under ``polarity`` (False: not judged under both)."""
+        gc = {p: next((f.similarity for f in fits if list(f.labels) == list(labels)), float("nan"))
+              for p, fits in self.registered.items()}
+        mine = gc.get(polarity, float("nan"))
+        return any(value > mine for p, value in gc.items() if p != polarity)
+
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],
                 "dark_storage": self.dark_storage,
