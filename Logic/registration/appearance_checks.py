@@ -18,7 +18,8 @@ lead) and the user did not set the polarity:
 6. the warnings on the appearance.
 
 ``with_winner`` is the levels stage's ``judge_appearance``: the contest's winner judged at the clicks too. When the
-polarity stayed unclear at the clicks and the contest's winner, not judged there, explains the image poorly, the
+polarity stayed unclear at the clicks and the contest's winner, not judged there (or judged there and agreeing
+better under the other polarity than under the one those judgements chose), explains the image poorly, the
 levels stage runs the contest again under the other polarity (``worth_other_polarity``,
 ``contest_under_other_polarity``) and takes it only when its winner, judged at the clicks too, confirms that
 polarity. The appearance in use (``state.appearance``)

@@ -3,15 +3,24 @@ the polarity stayed unclear at the clicks and the contest's winner, not among th
 explains the image poorly, on a case of the appearance benchmark whose polarity had been judged on wrong labellings
 only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing), and on
 one where it must change nothing but its record (report case 201's mirrored display). A winner the polarity was
-judged on gets no second contest: ``test_polarity_at_clicks_without_shading`` (case 92)."""
+judged on gets no second contest (``test_polarity_at_clicks_without_shading``, case 92), unless the polarity taken
+there fitted it worse than the other (stop 46, case 271's numbers)."""
 
 import json
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from appearance_cases import appearance_case_registrar
 
 from carmreg.logic.errors import CancelledError
+from carmreg.logic.image.appearance import REFINED_AT_CLICKS, REFINED_AT_CLICKS_WITHOUT_SHADING
+from carmreg.logic.registration.appearance_checks import AppearanceChecks
+from carmreg.logic.registration.click_polarity import ClickPolarity
+from carmreg.logic.registration.image_refine import RefineResult
+from carmreg.logic.registration.labelling_fit import LabellingFit
 from carmreg.logic.registration.level_confidence import ConfidenceRule
+from carmreg.logic.registration.levels import IdentifyParameters
 
 
 @pytest.fixture(scope="module")
@@ -96,3 +105,38 @@ def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_not
     assert state.xray_line_integral is kept["xray"] and state.click_polarity is kept["click_polarity"]
     assert list(ident.winner.labels) == record["first"]["winner"] != list(truth["clicked"])
     assert ident.status == "ambiguous" and state.warnings == [*kept["warnings"], ident.message]
+
+
+def _fit(labels, gc, mpde_mm):
+    fit = LabellingFit(list(labels), 0, np.zeros((3, 3)), np.zeros((3, 2)))
+    fit.refine = RefineResult(np.zeros(6), 0.0, gc, mpde_mm, 1, objective_end=1.0 - gc)
+    return fit
+
+
+def test_a_judged_winner_gets_the_second_contest_when_the_polarity_taken_at_the_clicks_fitted_it_worse():
+    """Fresh report case 271 (stop 46), its numbers: a flat-panel DICOM without a sign, stored bone bright, unnamed
+    clicks on T8-T10. Judged at the clicks on T4-T6, T3-T5, T5-T7 and T6-T8, bone dark was taken, unclear (its
+    registrations kept the clicks, bone bright's did not); T6-T8 won the contest, GC 0.36 under the floor, and at
+    T6-T8 bone bright had agreed better (0.29 against -0.07): the contest runs again as bone bright. Not when the
+    winner agreed better under the polarity taken, nor when that polarity came from other evidence (case 92's, the
+    image without its shading), nor when the winner explains the image."""
+    judged = [["T4", "T5", "T6"], ["T3", "T4", "T5"], ["T5", "T6", "T7"], ["T6", "T7", "T8"]]
+    gc = {"bone-dark": [0.109, 0.057, 0.081, -0.072], "bone-bright": [0.212, 0.218, 0.287, 0.289]}
+    mpde = {"bone-dark": [2.84, 3.90, 2.89, 1.70], "bone-bright": [4.56, 6.21, 5.65, 3.88]}
+    cp = ClickPolarity({p: max(v) for p, v in gc.items()}, {"bone-dark": True, "bone-bright": False},
+                       {p: [_fit(lb, g, m) for lb, g, m in zip(judged, gc[p], mpde[p], strict=True)] for p in gc},
+                       judged, "log-display")
+    appearance = SimpleNamespace(clear=False, orientation="as-stored", polarity="bone-dark",
+                                 decided_by=f"image ({REFINED_AT_CLICKS})")
+    state = SimpleNamespace(appearance=appearance, click_polarity=cp, xray=SimpleNamespace(polarity_stated=False),
+                            parameters=SimpleNamespace(polarity="auto", identify=IdentifyParameters()))
+    winner = _fit(["T6", "T7", "T8"], 0.364, 5.44)
+    assert cp.prefers_other(winner.labels, "bone-dark") and not cp.prefers_other(winner.labels, "bone-bright")
+    assert AppearanceChecks.worth_other_polarity(state, winner)
+    appearance.polarity = "bone-bright"  # the winner agreed better under the polarity taken
+    assert not AppearanceChecks.worth_other_polarity(state, winner)
+    appearance.polarity, appearance.decided_by = "bone-dark", f"image ({REFINED_AT_CLICKS_WITHOUT_SHADING})"
+    assert not AppearanceChecks.worth_other_polarity(state, winner)
+    appearance.decided_by = f"image ({REFINED_AT_CLICKS})"
+    assert not AppearanceChecks.worth_other_polarity(state, _fit(["T6", "T7", "T8"], 0.45, 1.2))  # explains it
+    assert AppearanceChecks.worth_other_polarity(state, _fit(["T8", "T9", "T10"], 0.30, 1.2))  # not judged: as before
