@@ -369,6 +369,50 @@ def test_the_appearance_is_judged_again_with_the_contests_winner_whose_verdict_d
     assert asked == [] and ident.status == "ambiguous" and ident.winner.labels == ["X9"]
 
 
+def test_without_clicks_the_best_two_are_refitted_tilted_and_a_tilted_pose_that_scores_better_is_proposed(
+        monkeypatch):
+    """Report case 275 (stop 46), its scores: without clicks a pose with L3 at the image centre won at 0.445 and was
+    PROPOSED, every level one off; the runner-up, L2 at the centre (0.686), refitted from its pose tilted +8 degrees
+    about L reaches the true pose at 0.330. The best two hypotheses naming different central levels are refitted
+    tilted -8 and +8 degrees; the tilted L2 wins, and is then challenged one level up and down like any best."""
+    from types import SimpleNamespace
+
+    import carmreg.logic.registration.levels as levels
+
+    names = ["L1", "L2", "L3", "L4", "L5"]
+    ct = Landmarks3D(names, np.array([[0.0, 0.0, 30.0 * i] for i in range(5)]))  # 30 mm apart along S (tz)
+    iy = 4  # ry_deg
+
+    def score(pose):  # L2 at the centre (tz 30) tilted +8 degrees is the true pose
+        centre = names[int(round(pose[2] / 30.0))]
+        return {"L3": 0.445, "L2": 0.330 if pose[iy] >= 8 else 0.686}.get(centre, 0.80)
+
+    tilts = []
+
+    def refit(ctx, fit, start, stop_rejoined=False, tilted=True):
+        if tilted and start[iy]:
+            tilts.append((names[int(round(start[2] / 30.0))], float(start[iy])))
+        f = score(start)
+        if fit.refine is None or f < fit.refine.objective_end:
+            fit.refine = RefineResult(np.asarray(start, float), 0.0, 1.0 - f, float("nan"), 1, objective_end=f)
+        return fit
+
+    monkeypatch.setattr(levels, "unlabelled_fit", lambda ctx, start, shift=0: refit(
+        ctx, LabellingFit([], shift, np.zeros((0, 3)), np.zeros((0, 2))), start, tilted=False))
+    monkeypatch.setattr(levels, "refit_from", refit)
+    monkeypatch.setattr(levels, "central_level", lambda geometry, pose, ct: names[int(round(pose[2] / 30.0))])
+    monkeypatch.setattr(levels, "visible_levels", lambda geometry, pose, ct, mask: [])
+    monkeypatch.setattr(levels, "measure_agreement", lambda ctx, fits: None)
+    ctx = SimpleNamespace(geometry=None, mask=None)
+    starts = [np.array([0.0, 0.0, 60.0, 0.0, 0.0, 0.0])]  # the spatial map's peak: L3 at the centre
+    ident = levels.identify_from_image(ctx, ct, starts)
+    assert sorted(tilts) == [("L2", -8.0), ("L2", 8.0), ("L3", -8.0), ("L3", 8.0)]  # the best two, each way
+    assert ident.status == "proposed" and ident.winner.labels == ["L2"]
+    assert ident.winner.score == pytest.approx(0.330) and ident.margin == pytest.approx(0.445 - 0.330)
+    ident = levels.identify_from_image(ctx, ct, starts, levels.IdentifyParameters(tilt_leaders_deg=0.0))
+    assert ident.winner.labels == ["L3"] and ident.status == "proposed"  # without the tilts: one level off
+
+
 def test_image_only_answers_are_at_best_proposed():
     a, b = _h([], 0.50), _h([], 0.60)
     assert decide_image_only([a, b], RULE).status == "proposed"
