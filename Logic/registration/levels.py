@@ -65,7 +65,10 @@ when its winner confirms that polarity (``AppearanceChecks.contest_under_other_p
 205).
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
-challenges the best with its pose moved one level up and down; the answer is only ever **proposed**.
+challenges the best with its pose moved one level up and down; then (since stop 46) the best two hypotheses naming
+different levels at the image centre are refitted from their poses tilted -+``tilt_leaders_deg`` about L, as the
+clicked leaders are, and a new best is challenged in turn (``_tilt_image_leaders``); the answer is only ever
+**proposed**.
 
 Every level a labelling names differs from the winner's (a shift renames every click), so the per-level margin
 equals the labelling's margin.
