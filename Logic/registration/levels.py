@@ -498,7 +498,8 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: 
                         appearance_clear: bool = True, registered: list | tuple = ()) -> LevelIdentification:
     """No clicks: refine from ``starts`` ((6,) poses: the spatial map's best peaks, ``image_starts``) on the image
     alone, then challenge the winner with its pose moved one level up and down along the spine (the look-alike
-    neighbours); decide as above.
+    neighbours), refit the best two tilted about L (``_tilt_image_leaders``) and challenge a new best; decide as
+    above.
     A pose translation (tx, ty, tz) moves the isocentre by (P, L, S) = (tx, ty, tz) mm (camera.py).
     ``registered``: (start, fit) already refined on this very image (the polarity check without clicks,
     ``image_polarity``); a peak with the same start takes a copy of that fit instead of refining again."""
