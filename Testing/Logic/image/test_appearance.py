@@ -306,9 +306,21 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
 
 @pytest.mark.slow
 def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_levels_stage_reuses_them(
-        sample_ct, case, tmp_path, drr_cache_dir):
+        sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
     """A bone-bright PNG without clicks: each polarity's spatial-map peaks are refined on the image, bone bright
-    wins clearly, and the no-click level answer starts from those refinements instead of computing them again."""
+    wins clearly, and the no-click level answer starts from those refinements instead of computing them again
+    (the levels stage refines none of those peaks; its hypotheses carry the check's refinements, or a better one
+    when a tilted refit of the best two found it: ``levels._tilt_image_leaders``)."""
+    import carmreg.logic.registration.levels as levels
+
+    refined_from = []  # the starts the levels stage refines afresh
+    fresh_fit = levels.unlabelled_fit
+
+    def counted(ctx, start, shift=0):
+        refined_from.append(np.array(start))
+        return fresh_fit(ctx, start, shift)
+
+    monkeypatch.setattr(levels, "unlabelled_fit", counted)
     ct, _, centroids = sample_ct
     sim, geometry = case
     bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
@@ -328,8 +340,11 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
                            bin_mask_to(state.mask, state.coarse_factor, (rows, cols)), "gc", ("gc",))
     np.testing.assert_allclose(state.spatial.maps["gc"], fresh.maps["gc"], atol=1e-6)
 
-    hypotheses = state.identification.fits  # one per level named; a reused one holds the very refinement
-    assert sum(any(h.refine is g.refine for g in evidence.registered["bone-bright"]) for h in hypotheses) >= 2
+    peaks = evidence.starts["bone-bright"]
+    assert refined_from and not any(np.array_equal(s, peak) for s in refined_from for peak in peaks)
+    hypotheses = state.identification.fits  # one per level named: each reused one began with the check's refinement
+    assert sum(any(h.runs[:1] == g.runs and h.refine.objective_end <= g.refine.objective_end
+                   for g in evidence.registered["bone-bright"]) for h in hypotheses) >= 2
     assert not any(h.refine is g.refine for h in hypotheses for g in evidence.registered["bone-dark"])
     assert all(g.labels == [] for g in evidence.registered["bone-bright"])  # the answer named copies
 
