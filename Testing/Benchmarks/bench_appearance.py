@@ -34,6 +34,7 @@ import json
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -46,7 +47,7 @@ import appearance as app  # noqa: E402
 from bench_registration import load_case  # noqa: E402
 from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load_second_ct  # noqa: E402
 
-from carmreg.logic.geometry.camera import project  # noqa: E402
+from carmreg.logic.geometry.camera import POSE_NAMES, project  # noqa: E402
 from carmreg.logic.geometry.distortion import RadialDistortion  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
@@ -153,6 +154,17 @@ def prepared_case(maker: CaseMaker, case: int, variant_name: str, folder: Path, 
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, Landmarks2D(labels, uv_px), RegistrationParameters(cache_dir=cache_dir))
     return logic, state, truth
+
+
+def registered_to_levels(case: int, variant_name: str, cache_dir: str, clicks: bool = True):
+    """(state, true pose (6,) in ``POSE_NAMES`` order): one variant of a case prepared (``prepared_case``, in a
+    temporary folder, with its unnamed clicks or none) and registered in process up to its levels stage - where the
+    diagnostic scripts (``score_true_pose.py``, ``labelling_starts.py``) take it."""
+    logic, state, truth = prepared_case(CaseMaker(second_ct=True), case, variant_name, Path(tempfile.mkdtemp()),
+                                        cache_dir, clicks=clicks)
+    for stage in ("database", "spatial", "levels"):
+        logic.run_stage(state, stage)
+    return state, np.array([truth["pose"][k] for k in POSE_NAMES])
 
 
 def clicks_file(mode: str, truth: dict, ct_labels: list[str], folder: Path, rng) -> tuple[Path | None, list]:

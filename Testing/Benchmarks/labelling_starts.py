@@ -14,7 +14,6 @@ leading two that get the tilted refits. Registered in process, as ``score_true_p
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -36,17 +35,12 @@ def main() -> None:
     parser.add_argument("--labels", required=True, help="the labelling, comma-separated, head first")
     parser.add_argument("--cache-dir", default="/tmp/carmreg-bench-cache")
     args = parser.parse_args()
-    maker = bench.CaseMaker(second_ct=True)
-    logic, state, truth = bench.prepared_case(maker, args.case, args.variant, Path(tempfile.mkdtemp()),
-                                              args.cache_dir)
-    for stage in ("database", "spatial", "levels"):
-        logic.run_stage(state, stage)
+    state, true_pose = bench.registered_to_levels(args.case, args.variant, args.cache_dir)
     labels = args.labels.split(",")
     fit = next((f for f in state.identification.fits if f.labels == labels), None)
     if fit is None or not fit.refined:
         sys.exit(f"labelling {labels} was not registered in this run")
     ctx = state_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm, None)
-    true_pose = np.array([truth["pose"][k] for k in POSE_NAMES])
     print(f"case {args.case} {args.variant}: {state.identification.status}, winner "
           f"{'-'.join(state.identification.winner.labels)}; {'-'.join(labels)} registered at {fit.score:.3f} "
           f"{np.round(fit.pose, 1)}, true pose {np.round(true_pose, 1)}")

@@ -14,7 +14,6 @@ case, which finds nearly but not exactly the poses of the command line.
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_appearance as bench  # noqa: E402
 
-from carmreg.logic.geometry.camera import POSE_NAMES  # noqa: E402
 from carmreg.logic.registration.image_refine import RefineParameters, grid_scores, refine_grid  # noqa: E402
 
 GRIDS = ((4.0, 4.0), (3.0, 2.0))
@@ -43,13 +41,8 @@ def main() -> None:
     parser.add_argument("--mode", choices=("unnamed", "none"), default="none")
     parser.add_argument("--cache-dir", default="/tmp/carmreg-bench-cache")
     args = parser.parse_args()
-    maker = bench.CaseMaker(second_ct=True)
-    logic, state, truth = bench.prepared_case(maker, args.case, args.variant, Path(tempfile.mkdtemp()),
-                                              args.cache_dir, clicks=args.mode == "unnamed")
-    for stage in ("database", "spatial", "levels"):
-        logic.run_stage(state, stage)
+    state, true_pose = bench.registered_to_levels(args.case, args.variant, args.cache_dir, args.mode == "unnamed")
     winner = state.identification.winner
-    true_pose = np.array([truth["pose"][k] for k in POSE_NAMES])
     print(f"case {args.case} {args.variant} {args.mode}: {state.identification.status}, winner "
           f"{'-'.join(winner.labels)}, found pose {np.round(winner.pose, 1)}, true pose {np.round(true_pose, 1)}")
     for mu_mm, pixel_mm in GRIDS:
