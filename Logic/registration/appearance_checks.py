@@ -73,6 +73,7 @@ from carmreg.logic.registration.click_polarity import (
     CLEAR_WITH_WINNER_GC,
     ClickPolarity,
     confirms,
+    judged_again_from,
     judged_also,
     one_level_from,
     polarity_at_clicks,
@@ -369,23 +370,33 @@ class AppearanceChecks:
         (``_orientation_with_winner``). Otherwise, only for an image taken as stored, or refused by the orientation
         check at the clicks on the stored image's leaders alone (``_refused_at_clicks``; any other refusal stays),
         whose judged labellings did not include the winner: it is registered under both polarities as the leaders were
-        (``click_polarity.judged_also``). When the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC``
-        (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict stays one), that verdict is
-        taken and the orientation judged again at the clicks with the winner, the stored one clear only by the same
-        lead: the winner was chosen on the image as stored and as converted, so the evidence leans toward both.
+        (``click_polarity.judged_also``); or did include it, at a worse pose than the contest found for it
+        (``ClickPolarity.found_better``), the orientation clear (only the polarity in question): it is refitted
+        under both from that pose (``judged_again_from``). When
+        the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``click_polarity.confirms``) and
+        ``decide_polarity`` agrees (a header conflict stays one), that verdict is taken and the orientation judged
+        again at the clicks with the winner, the stored one clear only by the same lead: the winner was chosen on
+        the image as stored and as converted, so the evidence leans toward both.
         Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
         if a.trusted:
             return self._orientation_with_winner(state, winner)
-        if cp is None or _judged(winner, cp.labels):
+        judged = cp is not None and _judged(winner, cp.labels)
+        if cp is None or (judged and not (a.orientation_clear and cp.found_better(winner, a.polarity))):
             return a.trusted
         if a.orientation != "as-stored" and not self._refused_at_clicks(a):
             return a.trusted
         contexts = self._polarity_contexts(state, cp.dark_storage)
-        planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm, winner.uv_px)
-        self._report("levels", 0.99, f"judging the X-ray's appearance with {', '.join(winner.labels)} too")
-        extended = judged_also(contexts, cp, planned, p.identify.rule)
+        names = ", ".join(winner.labels)
+        if judged:
+            self._report("levels", 0.99, f"judging the X-ray's appearance again at the pose found for {names}")
+            extended = judged_again_from(contexts, cp, winner, p.identify.rule)
+        else:
+            planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm,
+                                     winner.uv_px)
+            self._report("levels", 0.99, f"judging the X-ray's appearance with {names} too")
+            extended = judged_also(contexts, cp, planned, p.identify.rule)
         again = self._polarity_again(state, extended.scores, REFINED_AT_CLICKS, extended.fits)
         if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
             a.scores["at_clicks_with_winner"] = extended.as_dict()

@@ -48,6 +48,11 @@ bone-bright T4-T6 at GC 0.16.
 When the verdict stays unclear and the levels contest then finds a winner that was not among the leaders, the
 pipeline registers that labelling too, under both polarities (``judged_also``), and takes the verdict only when
 the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``confirms``; ``appearance_checks.with_winner``).
+When the winner was among them but the contest found it a better pose than its registration here (``found_better``:
+the contest's searches of its leaders, ``levels``), it is judged again from that pose under every polarity
+(``judged_again_from``), with the same test: seen, report case 263's intensifier JPEG, L1-L3 clicked on an image
+whose true pose is turned about every axis, judged at GC 0.17 bone dark and 0.07 bone bright (unclear); the contest's
+wider turns found L1-L3 at GC 0.79 bone dark.
 A labelling's landmark fit depends on the clicks only and is shared by its polarities.
 
 The chosen polarity's registrations are the levels stage's own (same image, same mu level, same refinement), so
@@ -61,7 +66,13 @@ from dataclasses import dataclass
 
 from carmreg.logic.image.appearance import verdict_at_clicks
 from carmreg.logic.registration.fine import FineResult
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, landmark_fit
+from carmreg.logic.registration.labelling_fit import (
+    FitContext,
+    LabellingFit,
+    fit_labelling,
+    landmark_fit,
+    refit_from,
+)
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 from carmreg.logic.registration.levels import ContestPlan
 
@@ -92,6 +103,12 @@ class ClickPolarity:
               for p, fits in self.registered.items()}
         mine = gc.get(polarity, float("nan"))
         return any(value > mine for p, value in gc.items() if p != polarity)
+
+    def found_better(self, winner: LabellingFit, polarity: str) -> bool:
+        """Whether the levels contest's ``winner`` (registered on the image as ``polarity``) is a judged labelling
+        whose registration there scores better than its registration under ``polarity`` here."""
+        judged = next((f for f in self.registered.get(polarity, []) if list(f.labels) == list(winner.labels)), None)
+        return judged is not None and winner.score < judged.score
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],
@@ -164,6 +181,21 @@ def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, 
     for polarity, ctx in contexts.items():
         registered[polarity].append(registered_as_leader(ctx, planned, fine))
     return _evidence(registered, [*evidence.labels, list(planned.labels)], evidence.dark_storage, rule)
+
+
+def judged_again_from(contexts: dict, evidence: ClickPolarity, winner: LabellingFit, rule: ConfidenceRule
+                      ) -> ClickPolarity:
+    """``evidence`` with the judged labelling of ``winner`` refitted under every polarity from the pose the levels
+    contest found for it (``refit_from``: each polarity keeps its better registration; copies, the evidence given is
+    left as it was)."""
+    registered = {}
+    for polarity, fits in evidence.registered.items():
+        fits = [f.copy() if list(f.labels) == list(winner.labels) else f for f in fits]
+        for f in fits:
+            if list(f.labels) == list(winner.labels):
+                refit_from(contexts[polarity], f, winner.pose.copy())
+        registered[polarity] = fits
+    return _evidence(registered, evidence.labels, evidence.dark_storage, rule)
 
 
 def confirms(evidence: ClickPolarity, polarity: str) -> bool:

@@ -46,6 +46,26 @@ GC 0.46 with the clicks at 2.71 mm while T4-T6, third at GC 0.30, fitted them at
 that takes the lead has beaten the old leader refitted from its pose too. The landmark check still holds the winner
 against the challenger's click fit whatever the challenge found.
 
+When even then the leader explains the image poorly (``explains_the_image``), every registered labelling within
+``wide_turn_levels`` of it is refitted from its pose turned wider (``_turn_wider``): by (ry, rz) = (-16, 0), (16, 0),
+(-8, -8) and (8, 8) degrees. Three clicks along the spine leave two directions loose, the tilt about L (with the
+source depth) and the turn about the spine's own axis (S), and a refinement from the landmark pose can miss a true
+pose turned about both (seen, stop 46: report case 263, second CT, L1-L3 clicked, the true pose turned -9.8, -9.0,
+-8.7 degrees about R, A, S; L1-L3 settled at GC 0.17, 11.6 degrees off in ry and 10.7 in rz, and L2-L4 won at
+GC 0.25; from L1-L3's pose turned (ry, rz) (-8, -8) or ry -16 the refinement reaches the true pose, GC 0.79, from
+-8 about one axis alone it does not). When that changes the leading two, they are searched again as after a
+challenge.
+
+Stability (``Stability``), since stop 47: the answer is stable when no search of the leaders took the lead from a
+leader that explained the image (``explains_the_image``), and the leader has held through a whole search of the
+leading two (from each other's pose, tilted, afresh: ``_search_round``) since it took the lead. A lead handed on only
+by leaders that explained the image poorly is a search finding a labelling's pose, not a change of mind: when the
+new leader explains the image, the leading two are searched once more (``_search_leaders``), and it must hold
+there. Until stop 46 any change of hands was instability, and report case 263's right names stayed ambiguous on
+images where L1-L3 led at GC 0.77-0.84 by 0.27-0.56: the lead had passed to it from L2-L4 at GC 0.23 (flat-panel
+JPEG, named), or between labellings under GC 0.3 before the wider turns found it (intensifier PNG). A challenge or
+the wider turns that change the leading two leave the leader unsettled until such a search (``_search_after``).
+
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
 the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
 rest of its search could only polish the pose the labelling already has. Stop 41, on the appearance benchmark's
@@ -123,6 +143,8 @@ class IdentifyParameters:
     restart_leaders: bool = True            # and restart both afresh from their own poses
     tilt_leaders_deg: float = 8.0           # and refit both from their poses tilted -+ this about L (0: not)
     challenge_best_fit: bool = True         # give the best click fit the leaders' searches when it beats theirs
+    wide_turns_deg: tuple = ((-16.0, 0.0), (16.0, 0.0), (-8.0, -8.0), (8.0, 8.0))  # (ry, rz) refits, poor leader
+    wide_turn_levels: int = 2               # of the labellings within this many levels of a poor leader
     stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
     stop_rejoined: bool = True              # stop refits that settle back at their labelling's pose (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
@@ -317,6 +339,24 @@ def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], rule: Confide
     return challenger
 
 
+def _turn_wider(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters) -> list[LabellingFit]:
+    """When the leader explains the image poorly (``explains_the_image``), refit every registered labelling within
+    ``wide_turn_levels`` of it from its own pose turned by each (ry, rz) of ``wide_turns_deg`` (module docstring);
+    returns the labellings refitted (none when the leader explains the image)."""
+    leader = _leader(fits)
+    if not p.wide_turns_deg or explains_the_image(leader, p.rule):
+        return []
+    at = next(i for i, f in enumerate(fits) if f is leader)
+    near = [f for i, f in enumerate(fits) if abs(i - at) <= p.wide_turn_levels and f.refined]
+    for f in near:
+        pose = f.pose.copy()
+        for ry_deg, rz_deg in p.wide_turns_deg:
+            turn = np.zeros(len(POSE_NAMES))
+            turn[POSE_NAMES.index("ry_deg")], turn[POSE_NAMES.index("rz_deg")] = ry_deg, rz_deg
+            refit_from(ctx, f, pose + turn, p.stop_rejoined)
+    return near
+
+
 def _restart_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: bool) -> bool:
     """Restart the image refinement of each of the leading two afresh from its own refined pose
     (``labelling_fit.restart``), each keeping its better refinement; True when the same labelling still leads.
@@ -333,20 +373,62 @@ def _restart_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: b
     return _leader(fits) is leader
 
 
-def _search_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None) -> bool:
-    """The leading two searched again: from each other's pose, from their own tilted, and afresh (each as
-    ``p`` asks), every stage followed by the contest's neighbours and ``_settle``; True when no stage changed the
-    lead (the rule's stability check)."""
-    stable = True
+@dataclass
+class Stability:
+    """The rule's stability check over the contest's searches of its leaders (module docstring): no search took the
+    lead from a leader that explained the image (``explains_the_image``), and the leader has held through a whole
+    search of the leading two since it took the lead."""
+
+    lost_explaining: bool = False           # a search took the lead from a leader that explained the image
+    settled: bool = True                    # the leader held through the last whole search of the leading two
+
+    @property
+    def ok(self) -> bool:
+        return self.settled and not self.lost_explaining
+
+
+def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
+                  stability: Stability) -> None:
+    """The leading two searched again: from each other's pose, from their own tilted, and afresh (each as ``p``
+    asks), every stage followed by the contest's neighbours and ``_settle``. A stage that hands the lead on leaves
+    the leader unsettled; one that takes it from a leader that explained the image is a loss for good."""
+    changed = False
     for wanted, stage in ((p.confirm_leaders, lambda: _confirm_leaders(ctx, fits, p.stop_rejoined)),
                           (p.tilt_leaders_deg > 0,
                            lambda: _tilt_leaders(ctx, fits, p.tilt_leaders_deg, p.stop_rejoined)),
                           (p.restart_leaders, lambda: _restart_leaders(ctx, fits, p.stop_rejoined))):
         if wanted:
-            stable = stage() and stable
+            before = _leader(fits)
+            if not stage():
+                changed = True
+                stability.lost_explaining |= explains_the_image(before, p.rule)
             _contest(ctx, fits, [], keep, p.stop_hopeless)  # a new leader is compared with its neighbours too
             _settle(ctx, fits, keep)
-    return stable
+    stability.settled = not changed
+
+
+def _search_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
+                    stability: Stability) -> None:
+    """Search the leading two (``_search_round``), and once more when that handed the lead on, only ever from
+    leaders that explained the image poorly, to one that explains it: a search that found a labelling's pose, not
+    a change of mind, provided the new leader then holds through a whole search too."""
+    _search_round(ctx, fits, p, keep, stability)
+    if not (stability.settled or stability.lost_explaining) and explains_the_image(_leader(fits), p.rule):
+        _search_round(ctx, fits, p, keep, stability)
+
+
+def _search_after(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
+                  leading: list[LabellingFit], stability: Stability) -> None:
+    """After extra refits (a challenge, wider turns): the contest's neighbours and ``_settle``; then, when the
+    leading two are no longer ``leading`` (those before the refits), the leader is unsettled and the leading two
+    are searched again (``_search_leaders``); so are they when an unsettled leader, never one that took the lead
+    from a leader that explained the image, now explains it (a wider turn can lift the leader itself)."""
+    _contest(ctx, fits, [], keep, p.stop_hopeless)  # a new leader is compared with its neighbours too
+    _settle(ctx, fits, keep)
+    changed = [id(f) for f in _leading_two(fits)] != [id(f) for f in leading]
+    stability.settled = stability.settled and not changed
+    if changed or not (stability.settled or stability.lost_explaining) and explains_the_image(_leader(fits), p.rule):
+        _search_leaders(ctx, fits, p, keep, stability)
 
 
 @dataclass
@@ -405,15 +487,18 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
-    stable = _search_leaders(ctx, fits, p, keep)
+    stability = Stability()
+    _search_leaders(ctx, fits, p, keep, stability)
     leading = _leading_two(fits)
     challenged = _challenge_best_fit(ctx, fits, p.rule, p.tilt_leaders_deg, p.stop_rejoined) \
         if p.challenge_best_fit else None
     if challenged is not None:
-        _contest(ctx, fits, [], keep, stop)  # a new leader is compared with its neighbours too
-        _settle(ctx, fits, keep)
-        if [id(f) for f in _leading_two(fits)] != [id(f) for f in leading]:
-            stable = _search_leaders(ctx, fits, p, keep) and stable
+        _search_after(ctx, fits, p, keep, leading, stability)
+    leading = _leading_two(fits)
+    turned = _turn_wider(ctx, fits, p)
+    if turned:
+        _search_after(ctx, fits, p, keep, leading, stability)
+    stable = stability.ok
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)
     if judge_appearance is not None:
@@ -422,7 +507,8 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
             appearance_clear = judge_appearance(unblocked.winner)
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
-    checks = {**verdict.checks, "challenged": list(challenged.labels) if challenged is not None else None}
+    checks = {**verdict.checks, "challenged": list(challenged.labels) if challenged is not None else None,
+              "turned_wider": [list(f.labels) for f in turned]}
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
                                click_indices=plan.used, reasons=verdict.reasons, checks=checks)

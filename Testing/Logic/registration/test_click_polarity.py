@@ -203,3 +203,39 @@ def test_the_next_most_plausible_labelling_is_judged_once_and_no_further(monkeyp
     evidence, registered = _staged_polarity_at_clicks(monkeypatch, staged, [4, 3, 5, 8, 9])
     assert registered.count(8) == 2 and 9 not in registered and len(evidence.labels) == 4
     assert not any(evidence.fits.values()) and not verdict_at_clicks(evidence.scores, evidence.fits)[2]
+
+
+def test_a_judged_winner_the_contest_found_at_a_better_pose_is_judged_again_from_that_pose(monkeypatch):
+    """Report case 263's intensifier JPEG (stop 47; bone dark, L1-L3 clicked, the true pose turned about every axis):
+    judged on L1-L3, L2-L4 and L3-L5, bone dark led by 0.08 (unclear) with L1-L3 at GC 0.17; the contest's wider
+    turns then found L1-L3 at GC 0.79. Refitted from that pose under both polarities, bone dark reaches it and bone
+    bright keeps its own better registration: the image confirms bone dark. The evidence judged first is left as
+    it was."""
+    labels = [["L1", "L2", "L3"], ["L2", "L3", "L4"], ["L3", "L4", "L5"]]
+    registered = {"bone-dark": [_fit(labels[0], 0.174, 1.88), _fit(labels[1], 0.246, 1.32),
+                                _fit(labels[2], 0.147, 2.09)],
+                  "bone-bright": [_fit(labels[0], 0.068, 1.60), _fit(labels[1], 0.063, 2.18),
+                                  _fit(labels[2], 0.162, 2.44)]}
+    rule = ConfidenceRule()
+    evidence = _evidence(registered, labels, "log-display", rule)
+    assert not verdict_at_clicks(evidence.scores, evidence.fits)[2]  # lead 0.084: unclear
+    winner = _fit(labels[0], 0.787, 1.49)
+    assert evidence.found_better(winner, "bone-dark")
+    assert not evidence.found_better(_fit(labels[0], 0.10, 1.49), "bone-dark")  # no better than judged
+    assert not evidence.found_better(_fit(["L4", "L5", "S1"], 0.9, 1.0), "bone-dark")  # not judged here
+    reached = {"bone-dark": (0.787, 1.49), "bone-bright": (-0.20, 3.10)}
+    starts = []
+
+    def refit_from(ctx, fit, start_pose, stop_rejoined=False):
+        starts.append((ctx, list(fit.labels)))
+        gc, mpde_mm = reached[ctx]
+        if gc > fit.similarity:
+            fit.refine = _fit(fit.labels, gc, mpde_mm).refine
+        return fit
+
+    monkeypatch.setattr(click_polarity, "refit_from", refit_from)
+    again = click_polarity.judged_again_from({p: p for p in reached}, evidence, winner, rule)
+    assert sorted(starts) == [("bone-bright", labels[0]), ("bone-dark", labels[0])]
+    assert again.scores == {"bone-dark": pytest.approx(0.787), "bone-bright": pytest.approx(0.162)}
+    assert confirms(again, "bone-dark") and not confirms(evidence, "bone-dark")
+    assert evidence.registered["bone-dark"][0].similarity == pytest.approx(0.174)  # the first evidence untouched

@@ -198,15 +198,19 @@ def test_recorded_checks_are_judged_again_exactly_as_the_registration_judged_the
 def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: list[int], n: int = 11,
                     appearance_clear: bool = True, judge_appearance=None, truth_gc: float = 0.70,
                     restarted: dict | None = None, restarts: list | None = None, tilted: dict | None = None,
-                    tilts: list | None = None, outcomes: dict | None = None) -> list:
+                    tilts: list | None = None, outcomes: dict | None = None, turned: dict | None = None,
+                    turns: list | None = None, params=None) -> list:
     """identify_levels with its planning and registrations replaced by fixed outcomes: labelling ``truth`` scores
     0.30 (GC 0.70), every other 0.70 (GC ``gc_of_the_others``), all with the clicks fitted at 1 mm; returns the
     indices registered, in order. ``restarted``: {index: (GC, score)} a restart (``labelling_fit.restart``) of that
     labelling reaches (others: unchanged); ``restarts`` collects the indices restarted; ``tilted``: {index: (GC,
     score)} a refit from its pose tilted about L (``levels._tilt_leaders``: a start whose ``ry`` is not 0) reaches
     (others: unchanged); ``tilts`` collects (index, tilt in degrees) of those refits; ``outcomes``: {index: (GC,
-    score, click mPDE)} any other registration of that labelling reaches instead. A refit keeps the better of its
-    refinements, as the product's does. The contest's control flow is the product's own."""
+    score, click mPDE)} any other registration of that labelling reaches instead; ``turned``: {index: (GC, score)}
+    a refit from its pose turned about the spine's axis too (``levels._turn_wider``: a start whose ``rz`` is not 0)
+    reaches (others: unchanged); ``turns`` collects (index, ry, rz) of those refits. A refit keeps the better of
+    its refinements, as the product's does. ``params``: ``IdentifyParameters``. The contest's control flow is the
+    product's own."""
     import carmreg.logic.registration.levels as levels
 
     fits = [LabellingFit([f"X{i}"], i, np.zeros((1, 3)), np.zeros((1, 2))) for i in range(n)]
@@ -220,7 +224,13 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
         i = fits.index(fit)
         if fit.refine is None:
             order.append(i)
-        tilt = 0.0 if start_pose is None else float(np.asarray(start_pose)[4])
+        tilt, turn = (0.0, 0.0) if start_pose is None else (float(start_pose[4]), float(start_pose[5]))
+        if turn:
+            if turns is not None:
+                turns.append((i, tilt, turn))
+            if i in (turned or {}):
+                keep_better(fit, *turned[i])
+            return fit
         if tilt:
             if tilts is not None:
                 tilts.append((i, tilt))
@@ -237,8 +247,7 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
         if restarts is not None:
             restarts.append(i)
         if i in (restarted or {}):
-            gc, score = restarted[i]
-            fit.refine = RefineResult(np.zeros(6), 0.0, gc, 1.0, 1, objective_end=score)
+            keep_better(fit, *restarted[i])
         return fit
 
     plan = levels.ContestPlan("unnamed", fits, list(first), None, [0], np.array([0]))
@@ -247,7 +256,7 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
     monkeypatch.setattr(levels, "fit_labelling", register)
     monkeypatch.setattr(levels, "refit_from", register)
     monkeypatch.setattr(levels, "restart", restart)
-    ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))), None, appearance_clear,
+    ident = levels.identify_levels(None, None, Landmarks2D([None], np.zeros((1, 2))), params, appearance_clear,
                                    judge_appearance=judge_appearance)
     return order, ident
 
@@ -271,7 +280,7 @@ def test_the_leader_is_restarted_with_its_rival_and_a_restart_that_reaches_the_i
     X0, the best of the others.)"""
     restarts = []
     _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
-                               restarted={5: (0.59, 0.415)}, restarts=restarts)
+                               restarted={5: (0.59, 0.25)}, restarts=restarts)
     assert sorted(restarts) == [0, 5] and ident.winner.labels == ["X5"] and ident.status == "confident"
     assert ident.checks["image_agreement"]["gc"] == pytest.approx(0.59)
     # a restart that does not reach the floor leaves the answer ambiguous, by the floor alone
@@ -323,6 +332,17 @@ def test_a_third_labelling_the_clicks_fit_clearly_better_gets_the_leaders_search
                                restarts=restarts)
     assert ident.checks["challenged"] == ["X4"] and ident.winner.labels == ["X3"] and ident.status == "ambiguous"
     assert sorted(restarts) == [2, 3, 4] and not ident.checks["landmark_fit"]["ok"]
+    # stop 47: the lead had changed hands among labellings under the floor (X3 at GC 0.38; a restart puts X2 ahead,
+    # GC 0.36); the challenger that then leads explains the image, is searched as a leader and holds: stable
+    poor = {**staged, 3: (0.38, 0.551, 2.71)}
+    _, ident = _staged_contest(monkeypatch, truth=3, gc_of_the_others=0.20, first=[2, 3, 4], n=7, outcomes=poor,
+                               restarted={2: (0.36, 0.54, 3.44), 4: (0.475, 0.50)})
+    assert ident.checks["challenged"] == ["X4"] and ident.winner.labels == ["X4"] and ident.status == "confident"
+    assert ident.checks["stability"]["ok"] and ident.runner_up.labels == ["X2"]
+    # the same lead taken from X3 explaining the image (GC 0.464): a change of mind, never stable again
+    _, ident = _staged_contest(monkeypatch, truth=3, gc_of_the_others=0.20, first=[2, 3, 4], n=7, outcomes=staged,
+                               restarted={2: (0.36, 0.54, 3.44), 4: (0.475, 0.50)})
+    assert ident.winner.labels == ["X4"] and ident.status == "ambiguous" and not ident.checks["stability"]["ok"]
     # a third labelling whose click fit the leader's is within the limit of is not challenged
     staged[4] = (0.303, 0.699, 1.6)  # 2.71 <= 1.5 x 1.6 + 0.5
     restarts.clear()
@@ -331,13 +351,62 @@ def test_a_third_labelling_the_clicks_fit_clearly_better_gets_the_leaders_search
     assert ident.checks["challenged"] is None and sorted(restarts) == [2, 3] and ident.status == "confident"
 
 
-def test_a_restart_that_hands_the_lead_to_the_other_leader_is_not_stable(monkeypatch):
-    """The leader under the floor (X5, GC 0.36) and its rival (X0) restarted: X0 now leads by a clear margin and
-    passes every other check, but a lead that changed hands on a second search is never confident."""
+def test_a_leader_that_explains_the_image_poorly_has_the_labellings_near_it_refitted_from_wider_turns(
+        monkeypatch):
+    """Report case 263 (stop 46; second CT, L1-L3 clicked, the true pose turned about all three axes by about 9
+    degrees): L2-L4 (X5) won at GC 0.25, under the floor, while the right L1-L3 (X4) was registered at GC 0.17 with
+    the clicks at 1.3 mm; from its pose turned by (ry, rz) -8, -8 degrees it reaches its true pose, GC 0.79. When
+    the leader explains the image poorly, every labelling within two levels of it is refitted from its pose turned
+    by each of (ry, rz) = (-16, 0), (16, 0), (-8, -8), (8, 8); the right one then leads, is searched as a leader,
+    and holds: confident, even when the lead had changed hands among the poor labellings before."""
+    from carmreg.logic.registration.levels import IdentifyParameters
+
+    staged = {5: (0.25, 0.75, 1.3), 4: (0.17, 0.83, 1.3)}
+    staged.update({i: (0.15, 0.85 + 0.001 * i, 2.0) for i in (0, 1, 2, 3, 6, 7, 8)})
+    tilts, turns = [], []
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.15, first=[3, 4, 5], n=9, outcomes=staged,
+                               turned={4: (0.79, 0.22)}, tilts=tilts, turns=turns)
+    assert ident.checks["turned_wider"] == [[f"X{i}"] for i in (3, 4, 5, 6, 7)]
+    assert sorted(turns) == sorted((i, t, t) for i in (3, 4, 5, 6, 7) for t in (-8.0, 8.0))
+    assert {(i, t) for i in (3, 4, 5, 6, 7) for t in (-16.0, 16.0)} <= set(tilts)
+    assert ident.winner.labels == ["X4"] and ident.status == "confident"
+    assert ident.checks["image_agreement"]["gc"] == pytest.approx(0.79) and ident.checks["stability"]["ok"]
+    # the lead had changed hands among the poor labellings (a restart: X4 0.83 -> 0.74, ahead of X5): superseded,
+    # stability is judged on the leaders' search after the turns; without the turns' lift it stays unstable
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.15, first=[3, 4, 5], n=9, outcomes=staged,
+                               restarted={4: (0.26, 0.74)}, turned={4: (0.79, 0.22)})
+    assert ident.winner.labels == ["X4"] and ident.status == "confident" and ident.checks["stability"]["ok"]
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.15, first=[3, 4, 5], n=9, outcomes=staged,
+                               restarted={4: (0.26, 0.74)})
+    assert ident.winner.labels == ["X4"] and ident.status == "ambiguous" and not ident.checks["stability"]["ok"]
+    # without the wider turns the leader under the floor stays, ambiguous
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.15, first=[3, 4, 5], n=9, outcomes=staged,
+                               turned={4: (0.79, 0.22)}, params=IdentifyParameters(wide_turns_deg=()))
+    assert ident.winner.labels == ["X5"] and ident.status == "ambiguous" and ident.checks["turned_wider"] == []
+
+
+def test_a_lead_handed_on_is_stable_only_from_leaders_that_explained_the_image_poorly_to_one_that_holds(
+        monkeypatch):
+    """Stability (stop 47): a search that takes the lead from a leader that explained the image is a change of mind,
+    never confident; one that takes it from a leader under the floor found a labelling's pose, and the new leader,
+    explaining the image, is stable once it holds through a whole search of the leading two."""
+    restarts = []
+    # the leader under the floor (X5, GC 0.36) and its rival (X0) restarted: X0 reaches GC 0.60 and leads; searched
+    # once more (X0 and X5 restarted again), it holds: stable, confident
     _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
-                               restarted={0: (0.60, 0.20)})
-    assert ident.winner.labels == ["X0"] and ident.status == "ambiguous"
-    assert not ident.checks["stability"]["ok"] and ident.checks["image_agreement"]["ok"]
+                               restarted={0: (0.60, 0.20)}, restarts=restarts)
+    assert ident.winner.labels == ["X0"] and ident.status == "confident" and ident.checks["stability"]["ok"]
+    assert sorted(restarts) == [0, 0, 5, 5]
+    # the leader above the floor (X5, GC 0.70): the same restart of X0 is a change of mind
+    restarts.clear()
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6],
+                               restarted={4: (0.60, 0.20)}, restarts=restarts)
+    assert ident.winner.labels == ["X4"] and ident.status == "ambiguous" and not ident.checks["stability"]["ok"]
+    assert sorted(restarts) == [4, 5]  # no second search: nothing can make it stable again
+    # handed on from a poor leader to one that still explains the image poorly: not stable (and under the floor)
+    _, ident = _staged_contest(monkeypatch, truth=5, gc_of_the_others=0.10, first=[4, 5, 6], truth_gc=0.36,
+                               restarted={0: (0.38, 0.20)})
+    assert ident.winner.labels == ["X0"] and not ident.checks["stability"]["ok"]
 
 
 def test_the_appearance_is_judged_again_with_the_contests_winner_whose_verdict_decides_the_appearance_check(
