@@ -372,12 +372,12 @@ class AppearanceChecks:
         whose judged labellings did not include the winner: it is registered under both polarities as the leaders were
         (``click_polarity.judged_also``); or did include it, at a worse pose than the contest found for it
         (``ClickPolarity.found_better``), the orientation clear (only the polarity in question): it is refitted
-        under both from that pose (``judged_again_from``). When
-        the image confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``click_polarity.confirms``) and
-        ``decide_polarity`` agrees (a header conflict stays one), that verdict is taken and the orientation judged
-        again at the clicks with the winner, the stored one clear only by the same lead: the winner was chosen on
-        the image as stored and as converted, so the evidence leans toward both.
-        Otherwise nothing changes. All or nothing: a cancel on the way leaves the appearance as it was."""
+        under both from that pose (``judged_again_from``). When the image confirms the polarity in use by
+        ``CLEAR_WITH_WINNER_GC`` (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict
+        stays one), that verdict is taken and the orientation judged again at the clicks with the winner, the stored
+        one clear only by the same lead: the winner was chosen on the image as stored and as converted, so the
+        evidence leans toward both. Otherwise nothing changes. All or nothing: a cancel on the way leaves the
+        appearance as it was."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
         if a.trusted:

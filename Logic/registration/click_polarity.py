@@ -188,13 +188,11 @@ def judged_again_from(contexts: dict, evidence: ClickPolarity, winner: Labelling
     """``evidence`` with the judged labelling of ``winner`` refitted under every polarity from the pose the levels
     contest found for it (``refit_from``: each polarity keeps its better registration; copies, the evidence given is
     left as it was)."""
-    registered = {}
-    for polarity, fits in evidence.registered.items():
-        fits = [f.copy() if list(f.labels) == list(winner.labels) else f for f in fits]
-        for f in fits:
-            if list(f.labels) == list(winner.labels):
-                refit_from(contexts[polarity], f, winner.pose.copy())
-        registered[polarity] = fits
+    def again(polarity: str, fit: LabellingFit) -> LabellingFit:
+        same = list(fit.labels) == list(winner.labels)
+        return refit_from(contexts[polarity], fit.copy(), winner.pose.copy()) if same else fit
+
+    registered = {polarity: [again(polarity, f) for f in fits] for polarity, fits in evidence.registered.items()}
     return _evidence(registered, evidence.labels, evidence.dark_storage, rule)
 
 
