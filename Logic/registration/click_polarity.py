@@ -99,16 +99,20 @@ class ClickPolarity:
     def prefers_other(self, labels: list, polarity: str) -> bool:
         """Whether the judged labelling ``labels`` (level names) reached a higher GC under another polarity than
         under ``polarity`` (False: not judged under both)."""
-        gc = {p: next((f.similarity for f in fits if list(f.labels) == list(labels)), float("nan"))
-              for p, fits in self.registered.items()}
+        fits = {p: self._registered(p, labels) for p in self.registered}
+        gc = {p: f.similarity if f is not None else float("nan") for p, f in fits.items()}
         mine = gc.get(polarity, float("nan"))
         return any(value > mine for p, value in gc.items() if p != polarity)
 
     def found_better(self, winner: LabellingFit, polarity: str) -> bool:
         """Whether the levels contest's ``winner`` (registered on the image as ``polarity``) is a judged labelling
         whose registration there scores better than its registration under ``polarity`` here."""
-        judged = next((f for f in self.registered.get(polarity, []) if list(f.labels) == list(winner.labels)), None)
+        judged = self._registered(polarity, winner.labels)
         return judged is not None and winner.score < judged.score
+
+    def _registered(self, polarity: str, labels: list) -> LabellingFit | None:
+        """The judged labelling ``labels`` as registered under ``polarity`` (None: not judged there)."""
+        return next((f for f in self.registered.get(polarity, []) if list(f.labels) == list(labels)), None)
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],

@@ -299,11 +299,19 @@ def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float, st
 
 def _refit_tilted(ctx: FitContext, fit: LabellingFit, tilt_deg: float, stop_rejoined: bool) -> None:
     """Refit ``fit`` from its refined pose tilted cranio-caudally (``ry_deg``) by -``tilt_deg``, then from it
-    tilted by +``tilt_deg`` (the same pose both times: the one it had before either refit)."""
-    tilt = np.zeros(len(POSE_NAMES))
-    tilt[POSE_NAMES.index("ry_deg")] = tilt_deg
+    tilted by +``tilt_deg`` (``_refit_turned``)."""
+    _refit_turned(ctx, fit, ((-tilt_deg, 0.0), (tilt_deg, 0.0)), stop_rejoined)
+
+
+def _refit_turned(ctx: FitContext, fit: LabellingFit, turns_deg: tuple, stop_rejoined: bool) -> None:
+    """Refit ``fit`` from its refined pose turned by each (``ry_deg``, ``rz_deg``) of ``turns_deg`` in turn (the
+    same pose every time: the one it had before any of these refits; each refit keeps the better refinement)."""
     pose = fit.pose.copy()
-    for start in (pose - tilt, pose + tilt):
+    iy, iz = POSE_NAMES.index("ry_deg"), POSE_NAMES.index("rz_deg")
+    for ry_deg, rz_deg in turns_deg:
+        start = pose.copy()
+        start[iy] += ry_deg
+        start[iz] += rz_deg
         refit_from(ctx, fit, start, stop_rejoined)
 
 
@@ -349,11 +357,7 @@ def _turn_wider(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters
     at = next(i for i, f in enumerate(fits) if f is leader)
     near = [f for i, f in enumerate(fits) if abs(i - at) <= p.wide_turn_levels and f.refined]
     for f in near:
-        pose = f.pose.copy()
-        for ry_deg, rz_deg in p.wide_turns_deg:
-            turn = np.zeros(len(POSE_NAMES))
-            turn[POSE_NAMES.index("ry_deg")], turn[POSE_NAMES.index("rz_deg")] = ry_deg, rz_deg
-            refit_from(ctx, f, pose + turn, p.stop_rejoined)
+        _refit_turned(ctx, f, p.wide_turns_deg, p.stop_rejoined)
     return near
 
 
@@ -386,6 +390,11 @@ class Stability:
     def ok(self) -> bool:
         return self.settled and not self.lost_explaining
 
+    def lifted(self, leader: LabellingFit, rule: ConfidenceRule) -> bool:
+        """Whether an unsettled lead, handed on only by leaders that explained the image poorly, is now held by one
+        that explains it (``explains_the_image``): it gets another whole search of the leading two."""
+        return not (self.settled or self.lost_explaining) and explains_the_image(leader, rule)
+
 
 def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
                   stability: Stability) -> None:
@@ -413,7 +422,7 @@ def _search_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParame
     leaders that explained the image poorly, to one that explains it: a search that found a labelling's pose, not
     a change of mind, provided the new leader then holds through a whole search too."""
     _search_round(ctx, fits, p, keep, stability)
-    if not (stability.settled or stability.lost_explaining) and explains_the_image(_leader(fits), p.rule):
+    if stability.lifted(_leader(fits), p.rule):
         _search_round(ctx, fits, p, keep, stability)
 
 
@@ -427,7 +436,7 @@ def _search_after(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParamete
     _settle(ctx, fits, keep)
     changed = [id(f) for f in _leading_two(fits)] != [id(f) for f in leading]
     stability.settled = stability.settled and not changed
-    if changed or not (stability.settled or stability.lost_explaining) and explains_the_image(_leader(fits), p.rule):
+    if changed or stability.lifted(_leader(fits), p.rule):
         _search_leaders(ctx, fits, p, keep, stability)
 
 
