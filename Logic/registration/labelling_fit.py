@@ -172,14 +172,16 @@ def landmark_fit(ctx: FitContext, fit: LabellingFit) -> FineResult:
     return fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine, should_stop=ctx.should_stop)
 
 
-def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_rejoined: bool = False
-               ) -> LabellingFit:
+def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_rejoined: bool = False,
+               give_up=None) -> LabellingFit:
     """Another start of the image refinement for a labelling; the better refinement is kept. ``stop_rejoined``:
-    stopped once it has settled back where the registered labelling already is (``early_stop.rejoins``)."""
+    stopped once it has settled back where the registered labelling already is (``early_stop.rejoins``);
+    ``give_up``: stopped once hopeless (``early_stop.give_up_above``; a refit stopped so is not kept, it ends behind
+    the refinement the labelling has)."""
     if ctx.on_labelling is not None:
         ctx.on_labelling(list(fit.labels))
     settled = rejoins(fit.pose, fit.score, ctx.refine.sigma) if stop_rejoined and fit.refined else None
-    return _refine_from(ctx, fit, np.asarray(start_pose, float), rejoined=settled)
+    return _refine_from(ctx, fit, np.asarray(start_pose, float), give_up=give_up, rejoined=settled)
 
 
 def restart(ctx: FitContext, fit: LabellingFit, stop_rejoined: bool = False) -> LabellingFit:

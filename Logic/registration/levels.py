@@ -30,7 +30,12 @@ magnification and the tilt only together (the clicks' spacing is the same at a n
 a refinement can settle on the wrong pair, and the leaders' poses, each refitted from the other's, can share it
 (seen, stop 39: report case 191's intensifier images, L1-L3 clicked; L1-L3 ended at 0.614 with the source 23 mm
 and the tilt 9.6 degrees off, where the true pose scores 0.41, and L2-L4 won, CONFIDENT, at 0.508; from its pose
-tilted +8 degrees L1-L3 reaches 0.39); a lead that changes hands there is not stable either. Last, the leading
+tilted +8 degrees L1-L3 reaches 0.39); a lead that changes hands there is not stable either. A tilt that finds a
+new pose (better than the labelling's by more than a polish, ``early_stop.REJOIN_GAIN``) is followed: refitted again
+from that pose tilted the same way, up to ``follow_tilts`` times while each step finds one (seen, stop 48: report
+case 279, chest, T2-T4 clicked next to the CT's top, flat panel; tilted -8 degrees the right labelling went from
+0.315 to 0.265 at ry -2.1 and won CONFIDENT with the tilt 7.6 degrees off and the levels not clicked 3-11 mm off;
+tilted -8 again from there it reaches its true pose, 0.089 at ry -9.5). Last, the leading
 two are restarted, each from its own pose with a fresh search (``_restart_leaders``): a right labelling whose
 refinement stopped in a local optimum is otherwise flagged by the floor (seen on the second CT), or keeps a pose
 whose levels not clicked land far off (seen, stop 40: case 181's flat panels, T1-T3 named right with the tilt 4.5
@@ -104,7 +109,7 @@ import numpy as np
 from carmreg.logic.geometry.camera import POSE_NAMES, CarmGeometry, project
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, level_index
 from carmreg.logic.registration.agreement import measure_agreement
-from carmreg.logic.registration.early_stop import give_up_above, lower_bound
+from carmreg.logic.registration.early_stop import REJOIN_GAIN, give_up_above, lower_bound
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
@@ -142,6 +147,7 @@ class IdentifyParameters:
     confirm_leaders: bool = True            # refit the leading two from each other's pose (fair contest)
     restart_leaders: bool = True            # and restart both afresh from their own poses
     tilt_leaders_deg: float = 8.0           # and refit both from their poses tilted -+ this about L (0: not)
+    follow_tilts: int = 2                   # a tilt that finds a new pose is followed this many steps further
     challenge_best_fit: bool = True         # give the best click fit the leaders' searches when it beats theirs
     wide_turns_deg: tuple = ((-16.0, 0.0), (16.0, 0.0), (-8.0, -8.0), (8.0, 8.0))  # (ry, rz) refits, poor leader
     wide_turn_levels: int = 2               # of the labellings within this many levels of a poor leader
@@ -284,35 +290,50 @@ def _confirm_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: b
     return _leader(fits) is a
 
 
-def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], tilt_deg: float, stop_rejoined: bool) -> bool:
-    """Refit each of the leading two from its own refined pose tilted cranio-caudally (``ry_deg``) by
-    -``tilt_deg`` and +``tilt_deg`` (module docstring), each keeping its best refinement; True when the same
-    labelling still leads."""
+def _tilt_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters) -> bool:
+    """Refit each of the leading two from its own refined pose tilted cranio-caudally (``_refit_tilted``), each
+    keeping its best refinement; True when the same labelling still leads."""
     ranked = _leading_two(fits)
     if not ranked:
         return True
     leader = ranked[0]
     for f in ranked:
-        _refit_tilted(ctx, f, tilt_deg, stop_rejoined)
+        _refit_tilted(ctx, f, p)
     return _leader(fits) is leader
 
 
-def _refit_tilted(ctx: FitContext, fit: LabellingFit, tilt_deg: float, stop_rejoined: bool) -> None:
-    """Refit ``fit`` from its refined pose tilted cranio-caudally (``ry_deg``) by -``tilt_deg``, then from it
-    tilted by +``tilt_deg`` (``_refit_turned``)."""
-    _refit_turned(ctx, fit, ((-tilt_deg, 0.0), (tilt_deg, 0.0)), stop_rejoined)
+def _refit_tilted(ctx: FitContext, fit: LabellingFit, p: IdentifyParameters) -> None:
+    """Refit ``fit`` from its refined pose tilted cranio-caudally (``ry_deg``) by -``tilt_leaders_deg``, then from
+    it tilted by +``tilt_leaders_deg`` (``_refit_turned``); a tilt that found a new pose is followed: refitted again
+    from that pose tilted the same way, up to ``follow_tilts`` times, while each step finds one (module docstring:
+    report case 279's right labelling, tilted -8 degrees from 0.315 to 0.265 at ry -2.1, reaches its true pose,
+    0.089 at ry -9.5, from there tilted -8 again)."""
+    tilt = p.tilt_leaders_deg
+    turn = _refit_turned(ctx, fit, ((-tilt, 0.0), (tilt, 0.0)), p.stop_rejoined)
+    for _ in range(p.follow_tilts):
+        if turn is None:
+            return
+        turn = _refit_turned(ctx, fit, (turn,), p.stop_rejoined)
 
 
-def _refit_turned(ctx: FitContext, fit: LabellingFit, turns_deg: tuple, stop_rejoined: bool) -> None:
+def _refit_turned(ctx: FitContext, fit: LabellingFit, turns_deg: tuple, stop_rejoined: bool,
+                  stop_behind: bool = False) -> tuple | None:
     """Refit ``fit`` from its refined pose turned by each (``ry_deg``, ``rz_deg``) of ``turns_deg`` in turn (the
-    same pose every time: the one it had before any of these refits; each refit keeps the better refinement)."""
-    pose = fit.pose.copy()
+    same pose every time: the one it had before any of these refits; each refit keeps the better refinement).
+    ``stop_behind``: a refit stops once it cannot end ahead of the labelling's score (``early_stop.give_up_above``).
+    Returns the turn whose refit the labelling now holds when that found a new pose, one that betters the score it
+    had before these refits by more than a polish (``early_stop.REJOIN_GAIN``); else None."""
+    pose, score, found = fit.pose.copy(), fit.score, None
     iy, iz = POSE_NAMES.index("ry_deg"), POSE_NAMES.index("rz_deg")
     for ry_deg, rz_deg in turns_deg:
         start = pose.copy()
         start[iy] += ry_deg
         start[iz] += rz_deg
-        refit_from(ctx, fit, start, stop_rejoined)
+        held = fit.refine
+        refit_from(ctx, fit, start, stop_rejoined, give_up_above(fit.score) if stop_behind else None)
+        if fit.refine is not held:
+            found = (ry_deg, rz_deg)
+    return found if fit.score < score - REJOIN_GAIN else None
 
 
 def _challenger(fits: list[LabellingFit], rule: ConfidenceRule) -> LabellingFit | None:
@@ -328,22 +349,21 @@ def _challenger(fits: list[LabellingFit], rule: ConfidenceRule) -> LabellingFit 
     return best if leading[0].mpde_mm > landmark_limit_mm(best.mpde_mm, rule) else None
 
 
-def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], rule: ConfidenceRule, tilt_deg: float,
-                        stop_rejoined: bool) -> LabellingFit | None:
+def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters) -> LabellingFit | None:
     """Give the challenger (``_challenger``) the searches the leaders get: completed when stopped early, refitted
-    from the leader's pose, from its own tilted -+``tilt_deg`` about L, and restarted afresh, keeping its best
+    from the leader's pose, from its own tilted about L (``_refit_tilted``), and restarted afresh, keeping its best
     (module docstring); returns it, None when there is none. Seen, stop 45: report case 255's flat panel, T4-T6
     clicked, third at GC 0.30 with the clicks at 1.00 mm, while T5-T7 led at GC 0.46 and 2.71 mm; the true pose of
     T4-T6 scores GC 0.475."""
-    challenger = _challenger(fits, rule)
+    challenger = _challenger(fits, p.rule)
     if challenger is None:
         return None
     if challenger.stopped_at is not None:
         complete(ctx, challenger)
-    refit_from(ctx, challenger, _leader(fits).pose.copy(), stop_rejoined)
-    if tilt_deg > 0:
-        _refit_tilted(ctx, challenger, tilt_deg, stop_rejoined)
-    restart(ctx, challenger, stop_rejoined)
+    refit_from(ctx, challenger, _leader(fits).pose.copy(), p.stop_rejoined)
+    if p.tilt_leaders_deg > 0:
+        _refit_tilted(ctx, challenger, p)
+    restart(ctx, challenger, p.stop_rejoined)
     return challenger
 
 
@@ -357,7 +377,7 @@ def _turn_wider(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters
     at = next(i for i, f in enumerate(fits) if f is leader)
     near = [f for i, f in enumerate(fits) if abs(i - at) <= p.wide_turn_levels and f.refined]
     for f in near:
-        _refit_turned(ctx, f, p.wide_turns_deg, p.stop_rejoined)
+        _refit_turned(ctx, f, p.wide_turns_deg, p.stop_rejoined, p.stop_hopeless)
     return near
 
 
@@ -404,7 +424,7 @@ def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParamete
     changed = False
     for wanted, stage in ((p.confirm_leaders, lambda: _confirm_leaders(ctx, fits, p.stop_rejoined)),
                           (p.tilt_leaders_deg > 0,
-                           lambda: _tilt_leaders(ctx, fits, p.tilt_leaders_deg, p.stop_rejoined)),
+                           lambda: _tilt_leaders(ctx, fits, p)),
                           (p.restart_leaders, lambda: _restart_leaders(ctx, fits, p.stop_rejoined))):
         if wanted:
             before = _leader(fits)
@@ -499,8 +519,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     stability = Stability()
     _search_leaders(ctx, fits, p, keep, stability)
     leading = _leading_two(fits)
-    challenged = _challenge_best_fit(ctx, fits, p.rule, p.tilt_leaders_deg, p.stop_rejoined) \
-        if p.challenge_best_fit else None
+    challenged = _challenge_best_fit(ctx, fits, p) if p.challenge_best_fit else None
     if challenged is not None:
         _search_after(ctx, fits, p, keep, leading, stability)
     leading = _leading_two(fits)
@@ -572,10 +591,9 @@ def _challenge_image_best(ctx: FitContext, ct: Landmarks3D, hypotheses: list, ch
                 hypotheses.append(unlabelled_fit(ctx, start, step))
 
 
-def _tilt_image_leaders(ctx: FitContext, ct: Landmarks3D, hypotheses: list, tilt_deg: float,
-                        stop_rejoined: bool) -> None:
+def _tilt_image_leaders(ctx: FitContext, ct: Landmarks3D, hypotheses: list, p: IdentifyParameters) -> None:
     """No clicks: the best two hypotheses with different levels at the image centre refitted from their poses
-    tilted -+``tilt_deg`` about L (``_refit_tilted``), as the clicked contest's leaders are: without clicks the
+    tilted about L (``_refit_tilted``), as the clicked contest's leaders are: without clicks the
     magnification and the cranio-caudal tilt trade against each other too. Seen, stop 46: the six no-click
     proposals the report halves had wrong, every level one off on intensifier images: case 275's runner-up, tilted
     +8 degrees, reaches the true pose (score 0.33 against the winner's 0.445); case 257's PNG and JPEG winners
@@ -586,7 +604,7 @@ def _tilt_image_leaders(ctx: FitContext, ct: Landmarks3D, hypotheses: list, tilt
         if len(leaders) == 2:
             break
     for h in leaders.values():
-        _refit_tilted(ctx, h, tilt_deg, stop_rejoined)
+        _refit_tilted(ctx, h, p)
 
 
 def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: IdentifyParameters | None = None,
@@ -608,7 +626,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: 
     challenged: set[str] = set()
     _challenge_image_best(ctx, ct, hypotheses, challenged)
     if p.tilt_leaders_deg > 0:
-        _tilt_image_leaders(ctx, ct, hypotheses, p.tilt_leaders_deg, p.stop_rejoined)
+        _tilt_image_leaders(ctx, ct, hypotheses, p)
         _challenge_image_best(ctx, ct, hypotheses, challenged)  # a new best is challenged too
     for h in hypotheses:
         h.labels = [central_level(ctx.geometry, h.pose, ct)]

@@ -220,7 +220,7 @@ def _staged_contest(monkeypatch, truth: int, gc_of_the_others: float, first: lis
         if fit.refine is None or score < fit.refine.objective_end:
             fit.refine = RefineResult(np.zeros(6), 0.0, gc, mpde_mm, 1, objective_end=score)
 
-    def register(ctx, fit, start_pose=None, give_up=None):  # nothing is stopped: every score is final
+    def register(ctx, fit, start_pose=None, stop_rejoined=False, give_up=None):  # nothing stops: every score final
         i = fits.index(fit)
         if fit.refine is None:
             order.append(i)
@@ -385,6 +385,74 @@ def test_a_leader_that_explains_the_image_poorly_has_the_labellings_near_it_refi
     assert ident.winner.labels == ["X5"] and ident.status == "ambiguous" and ident.checks["turned_wider"] == []
 
 
+def _basins_by_tilt(monkeypatch, basins: dict):
+    """``levels.refit_from`` staged as a refinement that settles in the basin (``ry_deg`` -> score) nearest its
+    start's tilt about L, keeping the better; returns the list of each refit's (start ry, give_up)."""
+    import carmreg.logic.registration.levels as levels
+
+    starts = []
+
+    def refit(ctx, fit, start, stop_rejoined=False, give_up=None):
+        starts.append((round(float(start[4]), 1), give_up))
+        ry = min(basins, key=lambda b: abs(b - start[4]))
+        if basins[ry] < fit.score:
+            fit.refine = RefineResult(np.array([0.0, 0.0, 0.0, 0.0, ry, 0.0]), 0.0, 1.0 - basins[ry], 1.0, 1,
+                                      objective_end=basins[ry])
+        return fit
+
+    monkeypatch.setattr(levels, "refit_from", refit)
+    return starts
+
+
+def _fit_at_tilt(ry_deg: float, score: float) -> LabellingFit:
+    fit = LabellingFit(["X1"], 0, np.zeros((3, 3)), np.zeros((3, 2)))
+    fit.refine = RefineResult(np.array([0.0, 0.0, 0.0, 0.0, ry_deg, 0.0]), 0.0, 1.0 - score, 1.0, 1,
+                              objective_end=score)
+    return fit
+
+
+def test_a_tilt_that_finds_a_new_pose_is_followed_the_same_way_while_it_finds_one(monkeypatch):
+    """Report case 279 (stop 48; chest, T2-T4 named, flat panel): the right labelling registered at 0.315, tilted -8
+    degrees about L it settled at 0.265 at ry -2.1, CONFIDENT with the tilt 7.6 degrees off and the levels not
+    clicked 3-11 mm off; tilted -8 again from there it reaches its true pose, 0.089 at ry -9.5. A tilt that finds a
+    new pose (better by more than a polish) is followed from it, the same way, up to ``follow_tilts`` times, while
+    each step finds one."""
+    from carmreg.logic.registration.levels import IdentifyParameters, _refit_tilted
+
+    basins = {5.0: 0.315, -2.1: 0.265, -9.5: 0.089}
+    starts = _basins_by_tilt(monkeypatch, basins)
+    fit = _fit_at_tilt(5.0, 0.315)
+    _refit_tilted(None, fit, IdentifyParameters())
+    assert [ry for ry, _ in starts] == [-3.0, 13.0, -10.1, -17.5]  # -8 found -2.1, followed: -9.5, then nothing
+    assert fit.pose[4] == -9.5 and fit.score == 0.089
+    starts.clear()
+    fit = _fit_at_tilt(5.0, 0.315)
+    _refit_tilted(None, fit, IdentifyParameters(follow_tilts=0))  # as before stop 48
+    assert [ry for ry, _ in starts] == [-3.0, 13.0] and fit.pose[4] == -2.1
+    starts.clear()
+    fit = _fit_at_tilt(5.0, 0.315)
+    basins[-2.1] = 0.31  # better by less than a polish (``early_stop.REJOIN_GAIN``): kept, not followed
+    _refit_tilted(None, fit, IdentifyParameters())
+    assert [ry for ry, _ in starts] == [-3.0, 13.0] and fit.score == 0.31
+
+
+def test_the_wider_turns_stop_a_refit_that_can_no_longer_better_its_labelling(monkeypatch):
+    """The wider turns' refits (``levels._refit_turned``, ``stop_behind``) give up once they cannot end ahead of
+    their labelling's own score (``early_stop.give_up_above``): such a refit would not be kept. The tilted refits
+    do not stop so."""
+    from carmreg.logic.registration.levels import _refit_turned
+
+    starts = _basins_by_tilt(monkeypatch, {0.0: 0.5})
+    fit = _fit_at_tilt(0.0, 0.5)
+    _refit_turned(None, fit, ((-16.0, 0.0), (16.0, 0.0)), True, stop_behind=True)
+    (_, give_up), _ = starts
+    assert give_up(480, 0.5 + allowance(480) + 0.01) and not give_up(480, 0.5 + allowance(480) - 0.01)
+    assert not give_up(160, 5.0)  # never before the first tabulated count
+    starts.clear()
+    _refit_turned(None, fit, ((-16.0, 0.0),), True)
+    assert starts == [(-16.0, None)]
+
+
 def test_a_lead_handed_on_is_stable_only_from_leaders_that_explained_the_image_poorly_to_one_that_holds(
         monkeypatch):
     """Stability (stop 47): a search that takes the lead from a leader that explained the image is a change of mind,
@@ -458,7 +526,7 @@ def test_without_clicks_the_best_two_are_refitted_tilted_and_a_tilted_pose_that_
 
     tilts = []
 
-    def refit(ctx, fit, start, stop_rejoined=False, tilted=True):
+    def refit(ctx, fit, start, stop_rejoined=False, give_up=None, tilted=True):
         if tilted and start[iy]:
             tilts.append((names[int(round(start[2] / 30.0))], float(start[iy])))
         f = score(start)
@@ -475,7 +543,8 @@ def test_without_clicks_the_best_two_are_refitted_tilted_and_a_tilted_pose_that_
     ctx = SimpleNamespace(geometry=None, mask=None)
     starts = [np.array([0.0, 0.0, 60.0, 0.0, 0.0, 0.0])]  # the spatial map's peak: L3 at the centre
     ident = levels.identify_from_image(ctx, ct, starts)
-    assert sorted(tilts) == [("L2", -8.0), ("L2", 8.0), ("L3", -8.0), ("L3", 8.0)]  # the best two, each way
+    assert sorted(tilts) == [("L2", -8.0), ("L2", 8.0), ("L2", 16.0), ("L3", -8.0), ("L3", 8.0)]  # the best two,
+    # each way; L2's +8 found a new pose and was followed +8 further, where it found nothing better
     assert ident.status == "proposed" and ident.winner.labels == ["L2"]
     assert ident.winner.score == pytest.approx(0.330) and ident.margin == pytest.approx(0.445 - 0.330)
     ident = levels.identify_from_image(ctx, ct, starts, levels.IdentifyParameters(tilt_leaders_deg=0.0))
