@@ -3,10 +3,20 @@ the polarity's second opinions (``test_polarity_without_shading``, ``test_polari
 the orientation at the clicks judged again on more labellings (``test_orientation_judged_again``).
 """
 
+import functools
 import sys
 from pathlib import Path
 
 import pytest
+
+
+@functools.cache
+def _case_maker():
+    """One ``CaseMaker`` per test process: its CTs and each case's scenes are made once, whichever module asks."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
+    import bench_appearance as bench
+
+    return bench.CaseMaker(second_ct=True)
 
 
 def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: bool):
@@ -14,10 +24,8 @@ def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: boo
     variant of the appearance benchmark, on the case's CT (``CaseMaker.ct_name``: every third case the second CT),
     with its unnamed clicks or none (DRR databases cached in ``cache_dir``), or its clicks named ``names`` when
     given; a case of the second CT skips the test without ../shared."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
-    import bench_appearance as bench
-
-    maker = bench.CaseMaker(second_ct=True)
+    maker = _case_maker()
+    import bench_appearance as bench  # on the path once the maker is made
 
     def registered(case: int, variant_name: str, names: list[str] | None = None):
         if case % 3 == 2 and "abdomen" not in maker.cts:

@@ -72,11 +72,14 @@ def half(case: int) -> str:
 class CaseMaker:
     """Builds the scenes of a case (both detectors) from the CTs, once per case."""
 
+    KEPT_CASES = 4
+
     def __init__(self, second_ct: bool = True):
         """``second_ct`` False: the chest CT only (a test that needs no ../shared)."""
         sample = sample_case()
         self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
         self.parts = {}
+        self._scenes: dict[int, dict[str, app.Scene]] = {}  # case -> every detector's scene (read only)
         second = load_second_ct() if second_ct else None
         if second is not None:
             self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
@@ -90,7 +93,16 @@ class CaseMaker:
     def scenes(self, case: int, detectors: set[str]) -> dict[str, app.Scene]:
         """The case's scene on each of ``detectors`` (a new pose is drawn until every detector shows 3 adjacent
         levels). The scenes of every detector are made, in one order, whichever are asked for: they draw from one
-        random stream, so a case run with some of its variants gets the images it gets with all of them."""
+        random stream, so a case run with some of its variants gets the images it gets with all of them. Made once
+        per case and kept for the ``KEPT_CASES`` latest cases (a scene is only read: every variant renders its own
+        image from it)."""
+        if case not in self._scenes:
+            while len(self._scenes) >= self.KEPT_CASES:
+                del self._scenes[next(iter(self._scenes))]
+            self._scenes[case] = self._every_scene(case)
+        return {d: self._scenes[case][d] for d in detectors}
+
+    def _every_scene(self, case: int) -> dict[str, app.Scene]:
         name = self.ct_name(case)
         (ct, labels, centroids), _, _ = self.cts[name]
         if name not in self.parts:
@@ -99,9 +111,8 @@ class CaseMaker:
         for _ in range(20):
             pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids)
             try:
-                every = {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
-                                           app.DETECTORS[d], rng) for d in sorted(app.DETECTORS)}
-                return {d: every[d] for d in detectors}
+                return {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
+                                          app.DETECTORS[d], rng) for d in sorted(app.DETECTORS)}
             except LookupError:
                 continue
         raise RuntimeError(f"case {case}: no pose with 3 adjacent visible levels in 20 draws")
