@@ -418,6 +418,14 @@ class Stability:
         return not (self.settled or self.lost_explaining) and explains_the_image(leader, rule)
 
 
+def _neighbours_settled(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None) -> None:
+    """After refits that may have changed the leader: the contest's neighbours of the (new) leader registered
+    (``_contest``: a new leader is compared with its neighbours too), then every labelling stopped early that could
+    still matter completed (``_settle``)."""
+    _contest(ctx, fits, [], keep, p.stop_hopeless)
+    _settle(ctx, fits, keep)
+
+
 def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
                   stability: Stability) -> None:
     """The leading two searched again: from each other's pose, from their own tilted, and afresh (each as ``p``
@@ -433,8 +441,7 @@ def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParamete
             if not stage():
                 changed = True
                 stability.lost_explaining |= explains_the_image(before, p.rule)
-            _contest(ctx, fits, [], keep, p.stop_hopeless)  # a new leader is compared with its neighbours too
-            _settle(ctx, fits, keep)
+            _neighbours_settled(ctx, fits, p, keep)
     stability.settled = not changed
 
 
@@ -450,12 +457,12 @@ def _search_leaders(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParame
 
 def _search_after(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
                   leading: list[LabellingFit], stability: Stability) -> None:
-    """After extra refits (a challenge, wider turns): the contest's neighbours and ``_settle``; then, when the
-    leading two are no longer ``leading`` (those before the refits), the leader is unsettled and the leading two
-    are searched again (``_search_leaders``); so are they when an unsettled leader, never one that took the lead
-    from a leader that explained the image, now explains it (a wider turn can lift the leader itself)."""
-    _contest(ctx, fits, [], keep, p.stop_hopeless)  # a new leader is compared with its neighbours too
-    _settle(ctx, fits, keep)
+    """After extra refits (a challenge, wider turns): the contest's neighbours and ``_settle``
+    (``_neighbours_settled``); then, when the leading two are no longer ``leading`` (those before the refits), the
+    leader is unsettled and the leading two are searched again (``_search_leaders``); so are they when an unsettled
+    leader, never one that took the lead from a leader that explained the image, now explains it (a wider turn can
+    lift the leader itself)."""
+    _neighbours_settled(ctx, fits, p, keep)
     changed = [id(f) for f in _leading_two(fits)] != [id(f) for f in leading]
     stability.settled = stability.settled and not changed
     if changed or stability.lifted(_leader(fits), p.rule):
