@@ -385,7 +385,7 @@ class AppearanceChecks:
         judged = cp is not None and _judged(winner, cp.labels)
         if cp is None or (judged and not (a.orientation_clear and cp.found_better(winner, a.polarity))):
             return a.trusted
-        if a.orientation != "as-stored" and not self._refused_at_clicks(a):
+        if self.untrusted_for_good(state):
             return a.trusted
         contexts = self._polarity_contexts(state, cp.dark_storage)
         names = ", ".join(winner.labels)
@@ -487,6 +487,17 @@ class AppearanceChecks:
             self._orientation_at_clicks(state, "levels", winner=winner)
             self._appearance_warnings(state)
         return a.trusted
+
+    @classmethod
+    def untrusted_for_good(cls, state: RegistrationState) -> bool:
+        """Whether the appearance in use stays untrusted whatever the levels contest finds: not trusted, on a display
+        judged mirrored or turned by a check the contest's winner cannot overrule (any but the orientation check at the
+        clicks on the stored image's leaders alone, ``_refused_at_clicks``). ``with_winner`` then changes nothing and
+        ``worth_other_polarity`` is False, so no level answer can be confident: the levels stage skips the searches
+        that serve only a confident verdict (``levels.identify_levels(confidence_possible=False)``)."""
+        a = state.appearance
+        return (a is not None and not a.trusted and a.orientation != "as-stored"
+                and not cls._refused_at_clicks(a))
 
     @staticmethod
     def _refused_at_clicks(a) -> bool:

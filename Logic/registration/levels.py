@@ -73,6 +73,12 @@ images where L1-L3 led at GC 0.77-0.84 by 0.27-0.56: the lead had passed to it f
 JPEG, named), or between labellings under GC 0.3 before the wider turns found it (intensifier PNG). A challenge or
 the wider turns that change the leading two leave the leader unsettled until such a search (``_search_after``).
 
+When the appearance stays untrusted whatever the contest finds (a display judged mirrored or turned by a check the
+winner cannot overrule: ``AppearanceChecks.untrusted_for_good``), no verdict but ambiguous can come out, and the
+searches that serve only a confident verdict (the leaders' searches, the challenge, the wider turns:
+``_search_for_confidence``) are skipped (``identify_levels(confidence_possible=False)``; since stop 49: the fresh
+halves' mirrored displays, 19-27 s a run quiet with them, 9-14 s without).
+
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
 the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
 rest of its search could only polish the pose the labelling already has. Stop 41, on the appearance benchmark's
@@ -503,15 +509,37 @@ def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: 
     return ContestPlan(mode, fits, first, given_index, used, order)
 
 
+def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None
+                           ) -> tuple[Stability, LabellingFit | None, list[LabellingFit]]:
+    """The searches that make a confident verdict fair (module docstring): the leading two searched
+    (``_search_leaders``), the best click fit challenged (``_challenge_best_fit``), the labellings near a poor leader
+    turned wider (``_turn_wider``), each change of the leading two searched again (``_search_after``). Returns the
+    stability, the challenger (None: none) and the labellings turned wider."""
+    stability = Stability()
+    _search_leaders(ctx, fits, p, keep, stability)
+    leading = _leading_two(fits)
+    challenged = _challenge_best_fit(ctx, fits, p) if p.challenge_best_fit else None
+    if challenged is not None:
+        _search_after(ctx, fits, p, keep, leading, stability)
+    leading = _leading_two(fits)
+    turned = _turn_wider(ctx, fits, p)
+    if turned:
+        _search_after(ctx, fits, p, keep, leading, stability)
+    return stability, challenged, turned
+
+
 def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
                     appearance_clear: bool = True, registered: list | tuple = (),
-                    judge_appearance=None) -> LevelIdentification:
+                    judge_appearance=None, confidence_possible: bool = True) -> LevelIdentification:
     """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
     ``registered``: labellings already registered on this very X-ray image (the polarity check at the clicks'
     poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks.
     ``judge_appearance(winner) -> bool``: called with the contest's winner whenever the verdict, were the
     appearance clear, would not be ambiguous; whether the appearance is trusted once that labelling is judged too
-    (the pipeline's, ``AppearanceChecks.with_winner``)."""
+    (the pipeline's, ``AppearanceChecks.with_winner``). ``confidence_possible=False``: the appearance stays untrusted
+    whatever the contest finds (``AppearanceChecks.untrusted_for_good``: a display judged mirrored or turned), so the
+    verdict can only be ambiguous: the labellings are registered and settled as always, but the searches that serve
+    only a confident verdict (``_search_for_confidence``) are skipped (``checks["leaders_searched"]`` False)."""
     p = params or IdentifyParameters()
     plan = plan_contest(ctx, ct, clicks, p)
     fits = plan.fits
@@ -525,16 +553,10 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
-    stability = Stability()
-    _search_leaders(ctx, fits, p, keep, stability)
-    leading = _leading_two(fits)
-    challenged = _challenge_best_fit(ctx, fits, p) if p.challenge_best_fit else None
-    if challenged is not None:
-        _search_after(ctx, fits, p, keep, leading, stability)
-    leading = _leading_two(fits)
-    turned = _turn_wider(ctx, fits, p)
-    if turned:
-        _search_after(ctx, fits, p, keep, leading, stability)
+    if confidence_possible:
+        stability, challenged, turned = _search_for_confidence(ctx, fits, p, keep)
+    else:
+        stability, challenged, turned = Stability(), None, []
     stable = stability.ok
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)
@@ -545,7 +567,7 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
     checks = {**verdict.checks, "challenged": list(challenged.labels) if challenged is not None else None,
-              "turned_wider": [list(f.labels) for f in turned]}
+              "turned_wider": [list(f.labels) for f in turned], "leaders_searched": bool(confidence_possible)}
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
                                click_indices=plan.used, reasons=verdict.reasons, checks=checks)

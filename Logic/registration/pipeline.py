@@ -339,7 +339,8 @@ class CarmRegLogic:
     def _contest_at_clicks(self, state: RegistrationState) -> LevelIdentification:
         """The contest between the clicks' labellings (``identify_levels``) on the X-ray as converted by the
         appearance in use, reusing the polarity check's registrations under it, with the contest's winner judged
-        by the appearance checks (``AppearanceChecks.with_winner``)."""
+        by the appearance checks (``AppearanceChecks.with_winner``); without the searches that serve only a confident
+        verdict when the appearance stays untrusted whatever it finds (``AppearanceChecks.untrusted_for_good``)."""
         a = state.appearance
 
         def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
@@ -348,7 +349,8 @@ class CarmRegLogic:
         return identify_levels(self._levels_context(state), state.ct_landmarks, state.xray_landmarks,
                                state.parameters.identify, a is None or a.trusted,
                                registered=self._registered_at_clicks(state),
-                               judge_appearance=None if a is None else judge)
+                               judge_appearance=None if a is None else judge,
+                               confidence_possible=not self._appearance.untrusted_for_good(state))
 
     @staticmethod
     def _image_starts(state: RegistrationState) -> list:

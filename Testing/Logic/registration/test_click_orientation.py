@@ -109,6 +109,33 @@ def test_the_rule_at_the_clicks_each_part_deciding():
     assert (refused.orientation, refused.orientation_clear, refused.trusted) == ("as-stored", False, False)
 
 
+def test_an_appearance_is_untrusted_for_good_only_where_the_contests_winner_cannot_overrule_it():
+    """``AppearanceChecks.untrusted_for_good`` (the levels contest then skips the searches that serve only a
+    confident verdict): a display the database judged mirrored is; one refused only by the check at the clicks on
+    the stored image's leaders is not (the winner judged too may overrule it, ``with_winner``); nor is a trusted
+    display, or one as stored but unclear."""
+    def for_good(a) -> bool:
+        return AppearanceChecks.untrusted_for_good(SimpleNamespace(appearance=a))
+
+    base = {"as-stored": 0.60, "turned-90": float("nan")}
+    fitted = {"as-stored": True, "mirrored-left-right": True, "turned-90": False}
+    trusted = _appearance()
+    trusted.set_orientation({"as-stored": 0.45, "mirrored-left-right": 0.30})
+    assert trusted.trusted and not for_good(trusted)
+    database = _appearance()
+    database.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.31 + REFUSE_ORIENTATION_GC})
+    assert database.orientation == MIRROR and for_good(database)
+    at_clicks = _appearance()
+    at_clicks.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.31})
+    at_clicks.set_orientation_at_clicks({"scores": {**base, MIRROR: 0.601 + REFUSE_ORIENTATION_AT_CLICKS_GC},
+                                         "fitted": fitted})
+    assert at_clicks.orientation == MIRROR and not at_clicks.trusted and not for_good(at_clicks)
+    unclear = _appearance()
+    unclear.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.31})
+    assert (unclear.orientation, unclear.trusted, for_good(unclear)) == ("as-stored", False, False)
+    assert not AppearanceChecks.untrusted_for_good(SimpleNamespace(appearance=None))
+
+
 def _registered(similarity_mpde: dict, fits: dict) -> ClickPolarity:
     """A polarity check's evidence: {polarity: [(GC, mPDE mm) of each labelling]}, and its verdict's ``fits``."""
     registered = {p: [SimpleNamespace(similarity=g, mpde_mm=m) for g, m in done] for p, done in similarity_mpde.items()}
@@ -192,6 +219,8 @@ def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_fr
     assert a.orientation_at_clicks["scores"][MIRROR] >= a.orientation_at_clicks["scores"]["as-stored"] \
         + REFUSE_ORIENTATION_AT_CLICKS_GC
     assert state.xray_line_integral is not None and state.known_gc is not None
+    # refused on the mirror, which no winner can overrule: the contest skips its confidence searches, ambiguous
+    assert AppearanceChecks.untrusted_for_good(state)
 
 
 @pytest.mark.slow
