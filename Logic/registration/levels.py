@@ -77,7 +77,7 @@ When the appearance stays untrusted whatever the contest finds (a display judged
 winner cannot overrule: ``AppearanceChecks.untrusted_for_good``), no verdict but ambiguous can come out, and the
 searches that serve only a confident verdict (the leaders' searches, the challenge, the wider turns:
 ``_search_for_confidence``) are skipped (``identify_levels(confidence_possible=False)``; since stop 49: the fresh
-halves' mirrored displays, 19-27 s a run quiet with them, 9-14 s without).
+halves' mirrored displays with clicks, 9.8-23.2 s a run with them, 7.5-13.4 s without, quiet).
 
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
 the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
