@@ -163,6 +163,11 @@ class IdentifyParameters:
     stop_rejoined: bool = True              # stop refits that settle back at their labelling's pose (``early_stop``)
     rule: ConfidenceRule = field(default_factory=ConfidenceRule)
 
+    @property
+    def tilts(self) -> bool:
+        """Whether leaders are refitted tilted about L (``tilt_leaders_deg`` > 0; 0 switches the tilts off)."""
+        return self.tilt_leaders_deg > 0
+
 
 @dataclass
 class LevelIdentification:
@@ -369,7 +374,7 @@ def _challenge_best_fit(ctx: FitContext, fits: list[LabellingFit], p: IdentifyPa
     if challenger.stopped_at is not None:
         complete(ctx, challenger)
     refit_from(ctx, challenger, _leader(fits).pose.copy(), p.stop_rejoined)
-    if p.tilt_leaders_deg > 0:
+    if p.tilts:
         _refit_tilted(ctx, challenger, p)
     restart(ctx, challenger, p.stop_rejoined)
     return challenger
@@ -439,8 +444,7 @@ def _search_round(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParamete
     the leader unsettled; one that takes it from a leader that explained the image is a loss for good."""
     changed = False
     for wanted, stage in ((p.confirm_leaders, lambda: _confirm_leaders(ctx, fits, p.stop_rejoined)),
-                          (p.tilt_leaders_deg > 0,
-                           lambda: _tilt_leaders(ctx, fits, p)),
+                          (p.tilts, lambda: _tilt_leaders(ctx, fits, p)),
                           (p.restart_leaders, lambda: _restart_leaders(ctx, fits, p.stop_rejoined))):
         if wanted:
             before = _leader(fits)
@@ -656,7 +660,7 @@ def identify_from_image(ctx: FitContext, ct: Landmarks3D, starts: list, params: 
     hypotheses = [reused(s) or unlabelled_fit(ctx, s) for s in starts]
     challenged: set[str] = set()
     _challenge_image_best(ctx, ct, hypotheses, challenged)
-    if p.tilt_leaders_deg > 0:
+    if p.tilts:
         _tilt_image_leaders(ctx, ct, hypotheses, p)
         _challenge_image_best(ctx, ct, hypotheses, challenged)  # a new best is challenged too
     for h in hypotheses:
