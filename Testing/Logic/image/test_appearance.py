@@ -447,5 +447,6 @@ def test_a_mirrored_display_is_refused_and_never_named_with_confidence(sample_ct
         assert "mirrored or rotated" in check.withheld and check.assigned_labels == [] and check.names() == []
         assert f"--orient-xray {result.appearance.orientation}" in check.withheld  # how to register it after all
         assert check.winner_labels and not any(w.startswith("level names") for w in result.warnings)
+        assert check.checks["leaders_searched"] is False  # refused for good: no search for a confident answer
     else:
         assert not result.level_check.withheld
