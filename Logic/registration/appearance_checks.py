@@ -125,11 +125,10 @@ def _judged(winner: LabellingFit, labellings: list) -> bool:
     return list(winner.labels) in [list(lb) for lb in labellings]
 
 
-def _contest_record(polarity: str, ident: LevelIdentification) -> dict:
-    """A levels contest in ``scores["contest_under_other_polarity"]``: the polarity it ran under, its winner, the
-    winner's GC and its status."""
-    return {"polarity": polarity, "winner": list(ident.winner.labels), "gc": float(ident.winner.similarity),
-            "status": ident.status}
+def _contest_record(polarity: str, winner: LabellingFit, status: str | None) -> dict:
+    """A levels contest in ``scores["contest_under_other_polarity"]``: the polarity it ran under, its winner (or its
+    leader before its searches for confidence), the winner's GC and its status (None: not decided yet)."""
+    return {"polarity": polarity, "winner": list(winner.labels), "gc": float(winner.similarity), "status": status}
 
 
 class AppearanceChecks:
@@ -436,16 +435,17 @@ class AppearanceChecks:
             return True
         return a.decided_by == f"image ({REFINED_AT_CLICKS})" and cp.prefers_other(winner.labels, a.polarity)
 
-    def contest_under_other_polarity(self, state: RegistrationState, first: LevelIdentification,
-                                     contest: Callable[[], LevelIdentification]) -> LevelIdentification:
+    def contest_under_other_polarity(self, state: RegistrationState, first: LabellingFit, first_status: str | None,
+                                     contest: Callable[[], LevelIdentification]) -> LevelIdentification | None:
         """The levels contest run again (``contest() -> LevelIdentification``) on the X-ray converted as the other
-        polarity (``Appearance.other_polarity``, never clear): its answer and that appearance are taken only when
-        the appearance is then trusted, i.e. its winner, judged at the clicks under both polarities as the leaders
-        were, confirmed that polarity by ``CLEAR_WITH_WINNER_GC`` (``with_winner``) and the orientation held.
-        Otherwise the ``first`` answer, the appearance, the polarity evidence and the warnings stay as they were
-        (also on a cancel: ``_all_or_nothing``). No threshold of its own: the same rule that trusts a polarity with
-        the winner of the first contest. Either way ``scores["contest_under_other_polarity"]`` records both contests'
-        winners."""
+        polarity (``Appearance.other_polarity``, never clear): its answer is returned and its appearance taken only
+        when the appearance is then trusted, i.e. its winner, judged at the clicks under both polarities as the
+        leaders were, confirmed that polarity by ``CLEAR_WITH_WINNER_GC`` (``with_winner``) and the orientation
+        held. Otherwise None, with the appearance, the polarity evidence and the warnings as they were (also on a
+        cancel: ``_all_or_nothing``). No threshold of its own: the same rule that trusts a polarity with the winner
+        of the first contest. ``first``: the first contest's winner, or its leader before its searches for
+        confidence (``first_status`` None: the pipeline asks before them). Either way
+        ``scores["contest_under_other_polarity"]`` records both contests."""
         a, cp, xray = state.appearance, state.click_polarity, state.xray
         other = a.other_polarity(cp.dark_storage, orientation_scores(
             xray.pixels, state.mask, state.database.drrs, state.coarse_factor, a.polarity != "bone-dark"))
@@ -459,12 +459,13 @@ class AppearanceChecks:
             if not taken:
                 _restore(state, kept)
         state.appearance.scores["contest_under_other_polarity"] = {
-            "first": _contest_record(a.polarity, first), "again": _contest_record(other.polarity, again),
-            "taken": bool(taken)}
+            "first": _contest_record(a.polarity, first, first_status),
+            "again": _contest_record(other.polarity, again.winner, again.status), "taken": bool(taken),
+            "before_first_searched": first_status is None}
         if not taken:
-            return first
+            return None
         state.appearance.note += (f"; found after the levels contest as {a.polarity} ended with "
-                                  f"{first.winner.labels[0]}-{first.winner.labels[-1]} explaining the image poorly")
+                                  f"{first.labels[0]}-{first.labels[-1]} explaining the image poorly")
         self._appearance_warnings(state)
         return again
 

@@ -532,18 +532,28 @@ def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: Identif
     return stability, challenged, turned
 
 
-def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
-                    appearance_clear: bool = True, registered: list | tuple = (),
-                    judge_appearance=None, confidence_possible: bool = True) -> LevelIdentification:
-    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring).
-    ``registered``: labellings already registered on this very X-ray image (the polarity check at the clicks'
-    poses, ``click_polarity``); each takes the place of the candidate with the same labels and clicks.
-    ``judge_appearance(winner) -> bool``: called with the contest's winner whenever the verdict, were the
-    appearance clear, would not be ambiguous; whether the appearance is trusted once that labelling is judged too
-    (the pipeline's, ``AppearanceChecks.with_winner``). ``confidence_possible=False``: the appearance stays untrusted
-    whatever the contest finds (``AppearanceChecks.untrusted_for_good``: a display judged mirrored or turned), so the
-    verdict can only be ambiguous: the labellings are registered and settled as always, but the searches that serve
-    only a confident verdict (``_search_for_confidence``) are skipped (``checks["leaders_searched"]`` False)."""
+@dataclass
+class OpenContest:
+    """A contest at the clicks with its labellings registered and settled, not yet searched for confidence nor
+    decided (``open_contest``; ``finish_contest`` does the rest)."""
+
+    ctx: FitContext
+    plan: ContestPlan
+    params: IdentifyParameters
+
+    @property
+    def leader(self) -> LabellingFit:
+        """The best labelling registered so far."""
+        return _leader(self.plan.fits)
+
+
+def open_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
+                 registered: list | tuple = ()) -> OpenContest:
+    """The first part of ``identify_levels``: the clicks' labellings planned and registered (the most plausible,
+    then the leader's neighbours until it holds; every one when unnamed clicks' most plausible explain the image
+    poorly), the labellings stopped early that could matter completed (``_settle``). ``registered``: labellings
+    already registered on this very X-ray image (the polarity check at the clicks' poses, ``click_polarity``);
+    each takes the place of the candidate with the same labels and clicks."""
     p = params or IdentifyParameters()
     plan = plan_contest(ctx, ct, clicks, p)
     fits = plan.fits
@@ -557,6 +567,16 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     if plan.given_index is None and not explains_the_image(best, p.rule):
         _contest(ctx, fits, list(range(len(fits))), keep, stop)  # unnamed, the most plausible explain it poorly
     _settle(ctx, fits, keep)
+    return OpenContest(ctx, plan, p)
+
+
+def finish_contest(contest: OpenContest, appearance_clear: bool = True, judge_appearance=None,
+                   confidence_possible: bool = True) -> LevelIdentification:
+    """The rest of ``identify_levels`` on an ``open_contest``: the searches for confidence
+    (``_search_for_confidence``, unless ``confidence_possible`` is False), the image agreement measured, the
+    appearance judged with the winner (``judge_appearance``) and the verdict (``level_confidence.decide``)."""
+    ctx, plan, p = contest.ctx, contest.plan, contest.params
+    fits, keep = plan.fits, plan.given_index
     if confidence_possible:
         stability, challenged, turned = _search_for_confidence(ctx, fits, p, keep)
     else:
@@ -575,6 +595,22 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
                                click_indices=plan.used, reasons=verdict.reasons, checks=checks)
+
+
+def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None,
+                    appearance_clear: bool = True, registered: list | tuple = (),
+                    judge_appearance=None, confidence_possible: bool = True) -> LevelIdentification:
+    """Name (or check the names of) the clicks: register the plausible labellings, decide (module docstring):
+    ``open_contest`` then ``finish_contest``. ``registered``: labellings already registered on this very X-ray
+    image (``open_contest``). ``judge_appearance(winner) -> bool``: called with the contest's winner whenever the
+    verdict, were the appearance clear, would not be ambiguous; whether the appearance is trusted once that
+    labelling is judged too (the pipeline's, ``AppearanceChecks.with_winner``). ``confidence_possible=False``: the
+    appearance stays untrusted whatever the contest finds (``AppearanceChecks.untrusted_for_good``: a display judged
+    mirrored or turned), so the verdict can only be ambiguous: the labellings are registered and settled as always,
+    but the searches that serve only a confident verdict (``_search_for_confidence``) are skipped
+    (``checks["leaders_searched"]`` False)."""
+    return finish_contest(open_contest(ctx, ct, clicks, params, registered), appearance_clear, judge_appearance,
+                          confidence_possible)
 
 
 # ----------------------------------------------------------------------------------------------- no clicks

@@ -57,8 +57,10 @@ from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
     LevelIdentification,
+    OpenContest,
+    finish_contest,
     identify_from_image,
-    identify_levels,
+    open_contest,
 )
 from carmreg.logic.registration.outcome import build_result
 from carmreg.logic.registration.pincushion import (
@@ -310,10 +312,7 @@ class CarmRegLogic:
             ident = identify_from_image(ctx, state.ct_landmarks, self._image_starts(state), p.identify,
                                         state.appearance is None or state.appearance.trusted, registered=reuse)
         else:
-            ident = self._contest_at_clicks(state)
-            if self._appearance.worth_other_polarity(state, ident.winner):
-                ident = self._appearance.contest_under_other_polarity(state, ident,
-                                                                       lambda: self._contest_at_clicks(state))
+            ident = self._levels_at_clicks(state)
             chosen = ident.chosen
             uv = np.asarray(clicks.uv_px, float)[ident.click_indices][ident.order]
             ct = state.ct_landmarks.as_dict()
@@ -336,21 +335,52 @@ class CarmRegLogic:
         ctx.xray_equalised = attenuation(state.xray.pixels, state.mask, bone_dark, EQUALISED)  # ``agreement``
         return ctx
 
+    def _levels_at_clicks(self, state: RegistrationState) -> LevelIdentification:
+        """The levels contest at the clicks (``_open_contest_at_clicks``, ``_finish_contest``), and the contest under
+        the other polarity when it is worth running (``AppearanceChecks.worth_other_polarity``,
+        ``contest_under_other_polarity``), asked first of the contest's leader before its searches for confidence:
+        when the leader already explains the image poorly under an unclear polarity, the other polarity's contest
+        runs then, and the first contest is searched and decided only when that one is not taken (since stop 50:
+        report case 271's flat-panel DICOM spent 29 of its 51 s searching under the polarity the second contest then
+        overturned). Otherwise the same is asked of the first contest's winner once it is decided. The second
+        contest's answer is the same either way (it starts afresh); only a first contest whose searches would have
+        lifted its leader to one that explains the image can now meet a second contest it did not before."""
+        opened = self._open_contest_at_clicks(state)
+        asked_before = self._appearance.worth_other_polarity(state, opened.leader)
+        if asked_before:
+            again = self._appearance.contest_under_other_polarity(state, opened.leader, None,
+                                                                  lambda: self._contest_at_clicks(state))
+            if again is not None:
+                return again
+        ident = self._finish_contest(state, opened)
+        if not asked_before and self._appearance.worth_other_polarity(state, ident.winner):
+            again = self._appearance.contest_under_other_polarity(state, ident.winner, ident.status,
+                                                                  lambda: self._contest_at_clicks(state))
+            return ident if again is None else again
+        return ident
+
     def _contest_at_clicks(self, state: RegistrationState) -> LevelIdentification:
-        """The contest between the clicks' labellings (``identify_levels``) on the X-ray as converted by the
-        appearance in use, reusing the polarity check's registrations under it, with the contest's winner judged
-        by the appearance checks (``AppearanceChecks.with_winner``); without the searches that serve only a confident
-        verdict when the appearance stays untrusted whatever it finds (``AppearanceChecks.untrusted_for_good``)."""
+        """The contest between the clicks' labellings on the X-ray as converted by the appearance in use, opened and
+        finished at once."""
+        return self._finish_contest(state, self._open_contest_at_clicks(state))
+
+    def _open_contest_at_clicks(self, state: RegistrationState) -> OpenContest:
+        """The clicks' labellings registered and settled (``open_contest``) on the X-ray as converted by the
+        appearance in use, reusing the polarity check's registrations under it."""
+        return open_contest(self._levels_context(state), state.ct_landmarks, state.xray_landmarks,
+                            state.parameters.identify, registered=self._registered_at_clicks(state))
+
+    def _finish_contest(self, state: RegistrationState, opened: OpenContest) -> LevelIdentification:
+        """The contest decided (``finish_contest``), its winner judged by the appearance checks
+        (``AppearanceChecks.with_winner``); without the searches that serve only a confident verdict when the
+        appearance stays untrusted whatever it finds (``AppearanceChecks.untrusted_for_good``)."""
         a = state.appearance
 
         def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
             return self._appearance.with_winner(state, winner)
 
-        return identify_levels(self._levels_context(state), state.ct_landmarks, state.xray_landmarks,
-                               state.parameters.identify, a is None or a.trusted,
-                               registered=self._registered_at_clicks(state),
-                               judge_appearance=None if a is None else judge,
-                               confidence_possible=not self._appearance.untrusted_for_good(state))
+        return finish_contest(opened, a is None or a.trusted, judge_appearance=None if a is None else judge,
+                              confidence_possible=not self._appearance.untrusted_for_good(state))
 
     @staticmethod
     def _image_starts(state: RegistrationState) -> list:

@@ -82,6 +82,7 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
     record = a.scores["contest_under_other_polarity"]
     assert record["first"]["polarity"] == "bone-bright" and record["first"]["gc"] < ConfidenceRule().min_similarity
     assert record["first"]["winner"] != list(truth["clicked"]) and record["taken"]
+    assert record["before_first_searched"] and record["first"]["status"] is None  # its searches never ran
     assert (a.polarity, a.trusted) == ("bone-dark", True)
     assert list(ident.winner.labels) == list(truth["clicked"]) and ident.status == "confident"
     assert ident.winner.similarity > 0.6
@@ -91,9 +92,11 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
 @pytest.mark.slow
 def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_nothing_but_its_record(clicked_case):
     """Case 201's mirrored display (chest, T7-T9 clicked, unnamed): bone dark, unclear at the clicks; the contest's
-    winner, T4-T6, explains the image poorly (stop 42: GC 0.34). Run again as bone bright, T11-L1 wins at about 0.16
-    and bone bright is not confirmed: the first answer (ambiguous), the appearance, its evidence and the converted
-    X-ray stay as they were when the second contest started, the appearance recording both contests, not taken."""
+    leader before its searches for confidence, T4-T6, explains the image poorly (GC 0.29), so the contest runs
+    again as bone bright before them (stop 50). T11-L1 wins at about 0.16 and bone bright is not confirmed: the
+    appearance, its evidence and the converted X-ray stay as they were when the second contest started, the
+    appearance recording both contests (the first as it stood then), not taken; the first contest is then searched
+    and decided as without the second (T2-T4, GC 0.35: ambiguous)."""
     logic, state, truth = clicked_case(201, "ii-dark-mirrored-png")
     kept = _levels_watching_the_second_contest(logic, state, cancel=False)
     assert kept, "the second contest never started"
@@ -103,7 +106,9 @@ def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_not
     assert not record["taken"] and polarities == ("bone-dark", "bone-bright")
     assert _appearance_json(a) == kept["appearance"] and (a.polarity, a.clear) == ("bone-dark", False)
     assert state.xray_line_integral is kept["xray"] and state.click_polarity is kept["click_polarity"]
-    assert list(ident.winner.labels) == record["first"]["winner"] != list(truth["clicked"])
+    assert record["before_first_searched"] and record["first"]["status"] is None
+    assert record["first"]["winner"] == ["T4", "T5", "T6"] and record["first"]["gc"] < ConfidenceRule().min_similarity
+    assert list(ident.winner.labels) == ["T2", "T3", "T4"] and ident.checks["leaders_searched"]
     assert ident.status == "ambiguous" and state.warnings == [*kept["warnings"], ident.message]
 
 
