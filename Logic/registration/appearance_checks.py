@@ -22,10 +22,11 @@ polarity stayed unclear at the clicks and the contest's winner, not judged there
 better under the other polarity than under the one those judgements chose), explains the image poorly, the
 levels stage runs the contest again under the other polarity (``worth_other_polarity``,
 ``contest_under_other_polarity``) and takes it only when its winner, judged at the clicks too, confirms that
-polarity. The appearance in use (``state.appearance``)
-always comes with the X-ray's attenuation image converted by it (``_use_appearance``). Every number and rule is
-the README's rule item 5 and ``image.appearance``'s thresholds; this module only orders the checks and keeps their
-evidence in ``appearance.scores``.
+polarity; it asks this first of the contest's leader before the searches for confidence, which then run only when
+the other polarity's contest is not taken (``CarmRegLogic._levels_at_clicks``). The appearance in use
+(``state.appearance``) always comes with the X-ray's attenuation image converted by it (``_use_appearance``).
+Every number and rule is the README's rule item 5 and ``image.appearance``'s thresholds; this module only orders
+the checks and keeps their evidence in ``appearance.scores``.
 """
 
 from __future__ import annotations

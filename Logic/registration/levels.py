@@ -95,7 +95,9 @@ was trusted, so that no confident answer names a labelling whose display orienta
 appearance stayed unclear and even the winner, a labelling the polarity was not judged on, explains the image
 poorly, the pipeline runs the whole contest again on the image converted as the other polarity, and keeps it only
 when its winner confirms that polarity (``AppearanceChecks.contest_under_other_polarity``; stop 42, report case
-205).
+205). Since stop 50 it asks this of the contest's leader as soon as the labellings are registered and settled
+(``open_contest``), before the searches for confidence (``finish_contest``), which then run only when the other
+polarity's contest is not taken: searches under a polarity about to be overturned are not spent.
 
 No clicks: ``identify_from_image`` refines the spatial map's best peaks (``image_starts``) on the image alone and
 challenges the best with its pose moved one level up and down; then (since stop 46) the best two hypotheses naming
