@@ -11,24 +11,26 @@ import pytest
 
 
 @functools.cache
-def _case_maker():
-    """One ``CaseMaker`` per test process: its CTs and each case's scenes are made once, whichever module asks."""
+def _case_maker(second_ct: bool = True):
+    """One ``CaseMaker`` per test process (and ``second_ct``: False draws every case on the chest CT, as the
+    benchmark does without ../shared): its CTs and each case's scenes are made once, whichever module asks."""
     sys.path.insert(0, str(Path(__file__).resolve().parent / "Benchmarks"))
     import bench_appearance as bench
 
-    return bench.CaseMaker(second_ct=True)
+    return bench.CaseMaker(second_ct=second_ct)
 
 
-def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: bool):
+def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: bool, chest_only: bool = False):
     """``registered(case, variant)``: (logic, the state after the spatial stage, the case's truth) of that case and
     variant of the appearance benchmark, on the case's CT (``CaseMaker.ct_name``: every third case the second CT),
     with its unnamed clicks or none (DRR databases cached in ``cache_dir``), or its clicks named ``names`` when
-    given; a case of the second CT skips the test without ../shared."""
-    maker = _case_maker()
+    given; a case of the second CT skips the test without ../shared. ``chest_only``: every case's scene drawn on the
+    chest CT (``CaseMaker(second_ct=False)``; nothing skipped)."""
+    maker = _case_maker(not chest_only)
     import bench_appearance as bench  # on the path once the maker is made
 
     def registered(case: int, variant_name: str, names: list[str] | None = None):
-        if case % 3 == 2 and "abdomen" not in maker.cts:
+        if not chest_only and case % 3 == 2 and "abdomen" not in maker.cts:
             pytest.skip("the second CT (../shared) is not here")
         logic, state, truth = bench.prepared_case(maker, case, variant_name, tmp_path_factory.mktemp(variant_name),
                                                   cache_dir, clicks=with_clicks, names=names)

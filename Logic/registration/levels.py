@@ -159,6 +159,7 @@ class IdentifyParameters:
     tilt_leaders_deg: float = 8.0           # and refit both from their poses tilted -+ this about L (0: not)
     follow_tilts: int = 2                   # a tilt that finds a new pose is followed this many steps further
     challenge_best_fit: bool = True         # give the best click fit the leaders' searches when it beats theirs
+    neighbours_from_leader: bool = True     # refit the leader's neighbours from its pose (``_neighbours_from_leader``)
     wide_turns_deg: tuple = ((-16.0, 0.0), (16.0, 0.0), (-8.0, -8.0), (8.0, 8.0))  # (ry, rz) refits, poor leader
     wide_turn_levels: int = 2               # of the labellings within this many levels of a poor leader
     stop_hopeless: bool = True              # stop refinements that can no longer matter (``early_stop``)
@@ -396,6 +397,30 @@ def _turn_wider(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters
     return near
 
 
+def _neighbours_from_leader(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None,
+                            done: set) -> bool:
+    """Refit the leader's registered neighbours (one level either side) from the leader's pose, each once per leader
+    (``done``: (neighbour, leader) ids already refitted), the runner-up aside (``_confirm_leaders`` refits it so);
+    with ``stop_hopeless`` a refit stops once it cannot come near the reference's best rival (``_rival_score``, as
+    the contest's registrations do): only a neighbour that could lead or be that rival matters. True when one took
+    the lead. The leader's pose carries the view's turn, which a
+    neighbour registered from the nominal pose can miss while the leader, one level off, finds a good enough fit
+    (seen, stop 50: case 263's scene on the chest CT, intensifier JPEG, unnamed clicks on T6-T8, the C-arm turned
+    about 9 degrees about every axis: T5-T7 won CONFIDENT at GC 0.56, clicks 2.6 mm, while T6-T8, third from its own
+    start at GC 0.36 and 4.7 mm, reaches GC 0.83 and 1.4 mm from T5-T7's pose)."""
+    leader = _leader(fits)
+    at = next(i for i, f in enumerate(fits) if f is leader)
+    ranked = _leading_two(fits)
+    for i in (at - 1, at + 1):
+        if (not 0 <= i < len(fits) or not fits[i].refined or any(fits[i] is f for f in ranked[1:])
+                or (id(fits[i]), id(leader)) in done):
+            continue
+        done.add((id(fits[i]), id(leader)))
+        bar = _rival_score(fits, keep) if p.stop_hopeless else np.inf
+        refit_from(ctx, fits[i], leader.pose.copy(), p.stop_rejoined, give_up_above(bar) if np.isfinite(bar) else None)
+    return _leader(fits) is not leader
+
+
 def _restart_leaders(ctx: FitContext, fits: list[LabellingFit], stop_rejoined: bool) -> bool:
     """Restart the image refinement of each of the leading two afresh from its own refined pose
     (``labelling_fit.restart``), each keeping its better refinement; True when the same labelling still leads.
@@ -519,7 +544,8 @@ def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: Identif
                            ) -> tuple[Stability, LabellingFit | None, list[LabellingFit]]:
     """The searches that make a confident verdict fair (module docstring): the leading two searched
     (``_search_leaders``), the best click fit challenged (``_challenge_best_fit``), the labellings near a poor leader
-    turned wider (``_turn_wider``), each change of the leading two searched again (``_search_after``). Returns the
+    turned wider (``_turn_wider``), the leader's neighbours refitted from its pose (``_neighbours_from_leader``, for
+    each new leader in turn), each change of the leading two searched again (``_search_after``). Returns the
     stability, the challenger (None: none) and the labellings turned wider."""
     stability = Stability()
     _search_leaders(ctx, fits, p, keep, stability)
@@ -531,6 +557,13 @@ def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: Identif
     turned = _turn_wider(ctx, fits, p)
     if turned:
         _search_after(ctx, fits, p, keep, leading, stability)
+    if p.neighbours_from_leader:
+        done: set = set()
+        for _ in range(len(fits)):  # each new leader's neighbours in turn (each pair once: bounded)
+            leading = _leading_two(fits)
+            if not _neighbours_from_leader(ctx, fits, p, keep, done):
+                break
+            _search_after(ctx, fits, p, keep, leading, stability)
     return stability, challenged, turned
 
 

@@ -638,7 +638,8 @@ def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refineme
                                                                                             monkeypatch):
     """On this case nothing is hopeless at the product's allowance (2 x the largest improvement seen + 0.05; the
     appearance benchmark's A/B runs are in the README); at the largest improvement seen alone, several labellings
-    stop, and the verdict is still the one full refinements give, to the bit."""
+    stop (fewer evaluations; a stopped neighbour of the leader is then refitted from the leader's pose, since stop
+    50), and the verdict is still the one full refinements give, to the bit."""
     import carmreg.logic.registration.early_stop as early_stop
 
     clicks = Landmarks2D([None] * 3, simulated[0].clicks.uv_px[SHUFFLED])
@@ -657,11 +658,10 @@ def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refineme
         fit = {k: v for k, v in checks["landmark_fit"].items() if k not in ("best_fit_mpde_mm", "limit_mm")}
         return {**checks, "landmark_fit": fit}
     assert leaders_checks(check.checks) == leaders_checks(full.checks)
-    stopped = [h for h in check.hypotheses if h["stopped_at_evaluations"]]
-    assert stopped, "no refinement was stopped on this case: the test no longer tests stopping"
     evaluations = {id(c): sum(cv["evaluations"][-1] for h in c.hypotheses for cv in h["start_curves"])
                    for c in (check, full)}
-    assert evaluations[id(check)] < evaluations[id(full)]
+    assert evaluations[id(check)] < evaluations[id(full)], "nothing was stopped: the test no longer tests stopping"
+    stopped = [h for h in check.hypotheses if h["stopped_at_evaluations"]]  # a later refit may have replaced them
     runner_up = sorted(x["score"] for x in full.hypotheses if x["refined"])[1]
     for h in stopped:  # stopped behind the rival by more than it could still have gained
         assert h["score"] - allowance(h["stopped_at_evaluations"]) > runner_up
