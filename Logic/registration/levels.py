@@ -403,11 +403,11 @@ def _neighbours_from_leader(ctx: FitContext, fits: list[LabellingFit], p: Identi
     (``done``: (neighbour, leader) ids already refitted), the runner-up aside (``_confirm_leaders`` refits it so);
     with ``stop_hopeless`` a refit stops once it cannot come near the reference's best rival (``_rival_score``, as
     the contest's registrations do): only a neighbour that could lead or be that rival matters. True when one took
-    the lead. The leader's pose carries the view's turn, which a
-    neighbour registered from the nominal pose can miss while the leader, one level off, finds a good enough fit
-    (seen, stop 50: case 263's scene on the chest CT, intensifier JPEG, unnamed clicks on T6-T8, the C-arm turned
-    about 9 degrees about every axis: T5-T7 won CONFIDENT at GC 0.56, clicks 2.6 mm, while T6-T8, third from its own
-    start at GC 0.36 and 4.7 mm, reaches GC 0.83 and 1.4 mm from T5-T7's pose)."""
+    the lead. The leader's pose carries the view's turn, which a neighbour registered from the nominal pose can
+    miss while the leader, one level off, finds a good enough fit (seen, stop 50: case 263's scene on the chest CT,
+    intensifier JPEG, unnamed clicks on T6-T8, the C-arm turned about 9 degrees about every axis: T5-T7 won
+    CONFIDENT at GC 0.56, clicks 2.6 mm, while T6-T8, third from its own start at GC 0.36 and 4.7 mm, reaches GC
+    0.83 and 1.4 mm from T5-T7's pose)."""
     leader = _leader(fits)
     at = next(i for i, f in enumerate(fits) if f is leader)
     ranked = _leading_two(fits)
@@ -541,12 +541,13 @@ def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: 
 
 
 def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: IdentifyParameters, keep: int | None
-                           ) -> tuple[Stability, LabellingFit | None, list[LabellingFit]]:
+                           ) -> tuple[Stability, LabellingFit | None, list[LabellingFit], list[LabellingFit]]:
     """The searches that make a confident verdict fair (module docstring): the leading two searched
     (``_search_leaders``), the best click fit challenged (``_challenge_best_fit``), the labellings near a poor leader
     turned wider (``_turn_wider``), the leader's neighbours refitted from its pose (``_neighbours_from_leader``, for
     each new leader in turn), each change of the leading two searched again (``_search_after``). Returns the
-    stability, the challenger (None: none) and the labellings turned wider."""
+    stability, the challenger (None: none), the labellings turned wider and the neighbours that took the lead from
+    the leader's pose."""
     stability = Stability()
     _search_leaders(ctx, fits, p, keep, stability)
     leading = _leading_two(fits)
@@ -557,14 +558,14 @@ def _search_for_confidence(ctx: FitContext, fits: list[LabellingFit], p: Identif
     turned = _turn_wider(ctx, fits, p)
     if turned:
         _search_after(ctx, fits, p, keep, leading, stability)
-    if p.neighbours_from_leader:
-        done: set = set()
-        for _ in range(len(fits)):  # each new leader's neighbours in turn (each pair once: bounded)
-            leading = _leading_two(fits)
-            if not _neighbours_from_leader(ctx, fits, p, keep, done):
-                break
-            _search_after(ctx, fits, p, keep, leading, stability)
-    return stability, challenged, turned
+    took_lead, done = [], set()
+    for _ in range(len(fits) if p.neighbours_from_leader else 0):  # each new leader's in turn (each pair once)
+        leading = _leading_two(fits)
+        if not _neighbours_from_leader(ctx, fits, p, keep, done):
+            break
+        took_lead.append(_leader(fits))
+        _search_after(ctx, fits, p, keep, leading, stability)
+    return stability, challenged, turned, took_lead
 
 
 @dataclass
@@ -613,9 +614,9 @@ def finish_contest(contest: OpenContest, appearance_clear: bool = True, judge_ap
     ctx, plan, p = contest.ctx, contest.plan, contest.params
     fits, keep = plan.fits, plan.given_index
     if confidence_possible:
-        stability, challenged, turned = _search_for_confidence(ctx, fits, p, keep)
+        stability, challenged, turned, took_lead = _search_for_confidence(ctx, fits, p, keep)
     else:
-        stability, challenged, turned = Stability(), None, []
+        stability, challenged, turned, took_lead = Stability(), None, [], []
     stable = stability.ok
     given = fits[plan.given_index] if plan.given_index is not None else None
     measure_agreement(ctx, fits)
@@ -626,7 +627,8 @@ def finish_contest(contest: OpenContest, appearance_clear: bool = True, judge_ap
     verdict = decide(fits, given, p.rule, stable=stable, appearance_clear=appearance_clear)
     chosen = given if given is not None else verdict.winner
     checks = {**verdict.checks, "challenged": list(challenged.labels) if challenged is not None else None,
-              "turned_wider": [list(f.labels) for f in turned], "leaders_searched": bool(confidence_possible)}
+              "turned_wider": [list(f.labels) for f in turned], "leaders_searched": bool(confidence_possible),
+              "neighbour_took_lead": [list(f.labels) for f in took_lead]}
     return LevelIdentification(plan.mode, verdict.status, verdict.margin, plan.order.tolist(), verdict.winner,
                                verdict.runner_up, given, fits, _message(plan.mode, verdict, chosen),
                                click_indices=plan.used, reasons=verdict.reasons, checks=checks)

@@ -28,8 +28,10 @@ def test_a_neighbour_that_missed_a_turned_view_is_refitted_from_the_leaders_pose
     assert list(truth["clicked"]) == ["T6", "T7", "T8"] and (ident.status, ident.winner.labels) == (
         "confident", ["T6", "T7", "T8"])
     assert ident.winner.similarity > 0.75 and ident.winner.mpde_mm < 2.0
+    assert ident.checks["neighbour_took_lead"][0] == ["T6", "T7", "T8"]
     # without the refits from the leader's pose: T5-T7, one level off, CONFIDENT (the wrong answer this stage ends)
     ident, _ = _levels(chest_case, False)
     assert (ident.status, ident.winner.labels) == ("confident", ["T5", "T6", "T7"])
+    assert ident.checks["neighbour_took_lead"] == []
     right = next(f for f in ident.fits if f.labels == ["T6", "T7", "T8"])
     assert right.similarity < 0.45 and right.mpde_mm > 4.0
