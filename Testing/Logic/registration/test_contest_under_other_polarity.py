@@ -96,19 +96,23 @@ def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_not
     again as bone bright before them (stop 50). T11-L1 wins at about 0.16 and bone bright is not confirmed: the
     appearance, its evidence and the converted X-ray stay as they were when the second contest started, the
     appearance recording both contests (the first as it stood then), not taken; the first contest is then searched
-    and decided as without the second (T2-T4, GC 0.35: ambiguous)."""
+    and decided as without the second: T3-T5 takes the lead from T2-T4's pose (``levels._neighbours_from_leader``),
+    is judged at the clicks too (``with_winner``: its record only, nothing confirmed) and stays ambiguous."""
     logic, state, truth = clicked_case(201, "ii-dark-mirrored-png")
     kept = _levels_watching_the_second_contest(logic, state, cancel=False)
     assert kept, "the second contest never started"
     a, ident = state.appearance, state.identification
     record = a.scores.pop("contest_under_other_polarity")
+    judged_after = a.scores.pop("at_clicks_with_winner")  # the first contest's winner, judged once it was decided
+    assert judged_after["labellings"][-1] == list(ident.winner.labels)
     polarities = (record["first"]["polarity"], record["again"]["polarity"])
     assert not record["taken"] and polarities == ("bone-dark", "bone-bright")
     assert _appearance_json(a) == kept["appearance"] and (a.polarity, a.clear) == ("bone-dark", False)
     assert state.xray_line_integral is kept["xray"] and state.click_polarity is kept["click_polarity"]
     assert record["before_first_searched"] and record["first"]["status"] is None
     assert record["first"]["winner"] == ["T4", "T5", "T6"] and record["first"]["gc"] < ConfidenceRule().min_similarity
-    assert list(ident.winner.labels) == ["T2", "T3", "T4"] and ident.checks["leaders_searched"]
+    assert list(ident.winner.labels) == ["T3", "T4", "T5"] and ident.checks["leaders_searched"]
+    assert ident.checks["neighbour_took_lead"] == [["T3", "T4", "T5"]]
     assert ident.status == "ambiguous" and state.warnings == [*kept["warnings"], ident.message]
 
 
