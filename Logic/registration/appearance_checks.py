@@ -123,7 +123,7 @@ def _settled(state: RegistrationState, checked_gc: float) -> bool:
 
 def _judged(winner: LabellingFit, labellings: list) -> bool:
     """Whether the contest's ``winner`` is one of the ``labellings`` (lists of level names) a check judged."""
-    return list(winner.labels) in [list(lb) for lb in labellings]
+    return any(winner.names(lb) for lb in labellings)
 
 
 def _contest_record(polarity: str, winner: LabellingFit, status: str | None) -> dict:

@@ -112,7 +112,7 @@ class ClickPolarity:
 
     def _registered(self, polarity: str, labels: list) -> LabellingFit | None:
         """The judged labelling ``labels`` as registered under ``polarity`` (None: not judged there)."""
-        return next((f for f in self.registered.get(polarity, []) if list(f.labels) == list(labels)), None)
+        return next((f for f in self.registered.get(polarity, []) if f.names(labels)), None)
 
     def as_dict(self) -> dict:
         return {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],
@@ -193,7 +193,7 @@ def judged_again_from(contexts: dict, evidence: ClickPolarity, winner: Labelling
     contest found for it (``refit_from``: each polarity keeps its better registration; copies, the evidence given is
     left as it was)."""
     def again(polarity: str, fit: LabellingFit) -> LabellingFit:
-        same = list(fit.labels) == list(winner.labels)
+        same = fit.names(winner.labels)
         return refit_from(contexts[polarity], fit.copy(), winner.pose.copy()) if same else fit
 
     registered = {polarity: [again(polarity, f) for f in fits] for polarity, fits in evidence.registered.items()}

@@ -112,6 +112,10 @@ class LabellingFit:
     def mpde_mm(self) -> float:
         return float(self.refine.mpde_mm) if self.refine is not None else float("nan")
 
+    def names(self, labels) -> bool:
+        """Whether this is the labelling ``labels`` (level names, clicks in spine order; any sequence)."""
+        return list(self.labels) == list(labels)
+
     def copy(self, **changes) -> LabellingFit:
         """A copy whose later starts do not touch this one's record (``runs``, ``curves``, ``rejoined``), with
         ``changes``."""

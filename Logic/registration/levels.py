@@ -595,7 +595,7 @@ def open_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: 
     fits = plan.fits
     for done in registered:  # copies: the contest refits its leaders, the originals stay as registered
         for i, f in enumerate(fits):
-            if f.labels == done.labels and np.array_equal(f.uv_px, done.uv_px) and done.refined:
+            if f.names(done.labels) and np.array_equal(f.uv_px, done.uv_px) and done.refined:
                 fits[i] = done.copy()
     keep, stop = plan.given_index, p.stop_hopeless
     _contest(ctx, fits, plan.first, keep, stop)

@@ -191,7 +191,7 @@ def chosen_fit(state: RegistrationState) -> LabellingFit | None:
     if ident is None or ident.mode == "image_only" or state.pairs is None:
         return None
     fit = ident.chosen
-    return fit if fit.labels == list(state.pairs.labels) and fit.depth is not None else None
+    return fit if fit.names(state.pairs.labels) and fit.depth is not None else None
 
 
 def initial_appearance(xray: XrayImage, params: RegistrationParameters) -> Appearance:
