@@ -3,6 +3,7 @@ the polarity's second opinions (``test_polarity_without_shading``, ``test_polari
 the orientation at the clicks judged again on more labellings (``test_orientation_judged_again``).
 """
 
+import copy
 import functools
 import sys
 from pathlib import Path
@@ -39,3 +40,14 @@ def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: boo
         return logic, state, truth
 
     return registered
+
+
+def copied(state):
+    """(logic, state): a deep copy of a registration's ``state`` that runs its own stages, sharing the CT, its mu
+    pyramid and the DRR database (read only), and a new logic to run them (a logic keeps no state of a
+    registration). For tests that run the same registration on from one point more than once (a copy costs far
+    less than the stages before it)."""
+    from carmreg.logic.registration.pipeline import CarmRegLogic
+
+    shared = {id(x): x for x in (state.ct, state.pyramid, state.database) if x is not None}
+    return CarmRegLogic(), copy.deepcopy(state, shared)

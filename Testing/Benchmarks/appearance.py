@@ -304,14 +304,31 @@ def visible_levels(uv: dict, field_desc: dict, detector: Detector, margin_mm: fl
     return out
 
 
-def make_scene(ct_name: str, ct, labels, centroids: Landmarks3D, mu_parts, pose: CarmPose, motions: dict,
-               detector: Detector, rng: np.random.Generator) -> Scene:
-    """Render both line-integral parts of the moved anatomy on ``detector`` and the truth (module docstring).
+@dataclass
+class ScenePlan:
+    """One case on one detector before its line integrals are rendered: everything drawn at random (K-wires,
+    collimation, the intensifier's pincushion, the click noise) and the truth. ``render_scene`` renders it; the
+    renders draw nothing at random, so a scene planned now and rendered later is the one ``make_scene`` makes."""
+
+    ct_name: str
+    detector: Detector
+    geometry: CarmGeometry
+    pose: CarmPose
+    motions: dict
+    wires: list
+    field: np.ndarray                 # (rows, cols) float32 0..1, the exposed field
+    warp: Pincushion | None           # the intensifier's distortion (None: a flat panel)
+    uv_true_px: dict
+    visible: dict
+    clicked: list
+    clicks_uv_px: np.ndarray
+    distortion: dict
+
+
+def plan_scene(ct_name: str, centroids: Landmarks3D, pose: CarmPose, motions: dict, detector: Detector, geometry,
+               rng: np.random.Generator) -> ScenePlan:
+    """The random draws and the truth of a scene, in ``make_scene``'s order (``geometry``: ``make_geometry``).
     Raises LookupError when fewer than 3 adjacent levels are visible (draw another pose)."""
-    water, bone, water_soft, bone_soft = mu_parts
-    geometry = make_geometry(ct, detector)
-    l_water = render_moved_anatomy(water, labels, ct.ijk_to_lps, motions, water_soft, geometry, pose, True)
-    l_bone = render_moved_anatomy(bone, labels, ct.ijk_to_lps, motions, bone_soft, geometry, pose, True)
     P = geometry.projection_matrix(pose)
     points = centroids.sorted().as_dict()
     uv_ideal = {lb: project(P, (motions[lb].apply(c) if lb in motions else c)[None])[0] for lb, c in points.items()}
@@ -319,14 +336,11 @@ def make_scene(ct_name: str, ct, labels, centroids: Landmarks3D, mu_parts, pose:
     nearest = sorted(uv_ideal, key=lambda lb: np.linalg.norm(uv_ideal[lb] - ((cols - 1) / 2.0, (rows - 1) / 2.0)))
     wires = plan_kwires(rng, nearest, points, motions, dataclasses.replace(SimulationOptions(),
                                                                             n_kwires=int(rng.integers(0, 3))))
-    for wire in wires:
-        add_kwire(l_water, wire, geometry, pose, 0.9)
     field_img, desc = collimation(rng, detector)
     distortion: dict = {"model": "none"}
-    uv_true = dict(uv_ideal)
+    uv_true, warp = dict(uv_ideal), None
     if detector.kind == "ii":
         warp = draw_pincushion(rng, detector)
-        l_water, l_bone = resample(l_water, warp), resample(l_bone, warp)
         uv_true = {lb: warp.distort(uv) for lb, uv in uv_ideal.items()}
         distortion = {"model": "r (1 + k r^2), y *= 1 + a about center_px (detector mm)",
                       **dataclasses.asdict(warp)}
@@ -338,8 +352,32 @@ def make_scene(ct_name: str, ct, labels, centroids: Landmarks3D, mu_parts, pose:
         raise LookupError(str(exc)) from None
     clicks = np.array([uv_true[lb] + rng.normal(0.0, 0.9 / detector.pixel_mm, 2) for lb in clicked])
     distortion["field"] = desc
-    return Scene(ct_name, detector, geometry, pose, l_water, l_bone, field_img, uv_true, visible, list(clicked),
-                 clicks, distortion)
+    return ScenePlan(ct_name, detector, geometry, pose, motions, wires, field_img, warp, uv_true, visible,
+                     list(clicked), clicks, distortion)
+
+
+def render_scene(plan: ScenePlan, ct, labels, mu_parts) -> Scene:
+    """Render both line-integral parts of the moved anatomy on the plan's detector, the K-wires added and the
+    intensifier's pincushion applied (module docstring)."""
+    water, bone, water_soft, bone_soft = mu_parts
+    geometry, pose = plan.geometry, plan.pose
+    l_water = render_moved_anatomy(water, labels, ct.ijk_to_lps, plan.motions, water_soft, geometry, pose, True)
+    l_bone = render_moved_anatomy(bone, labels, ct.ijk_to_lps, plan.motions, bone_soft, geometry, pose, True)
+    for wire in plan.wires:
+        add_kwire(l_water, wire, geometry, pose, 0.9)
+    if plan.warp is not None:
+        l_water, l_bone = resample(l_water, plan.warp), resample(l_bone, plan.warp)
+    return Scene(plan.ct_name, plan.detector, geometry, pose, l_water, l_bone, plan.field, plan.uv_true_px,
+                 plan.visible, list(plan.clicked), plan.clicks_uv_px, plan.distortion)
+
+
+def make_scene(ct_name: str, ct, labels, centroids: Landmarks3D, mu_parts, pose: CarmPose, motions: dict,
+               detector: Detector, rng: np.random.Generator) -> Scene:
+    """Render both line-integral parts of the moved anatomy on ``detector`` and the truth (module docstring):
+    ``plan_scene`` then ``render_scene``. Raises LookupError when fewer than 3 adjacent levels are visible (draw
+    another pose)."""
+    plan = plan_scene(ct_name, centroids, pose, motions, detector, make_geometry(ct, detector), rng)
+    return render_scene(plan, ct, labels, mu_parts)
 
 
 def truth_dict(scene: Scene, mirrored: bool) -> dict:

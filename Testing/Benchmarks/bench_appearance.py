@@ -70,7 +70,7 @@ def half(case: int) -> str:
 # ----------------------------------------------------------------------------------------------- cases
 
 class CaseMaker:
-    """Builds the scenes of a case (both detectors) from the CTs, once per case."""
+    """Builds the scenes of a case (both detectors planned, those asked for rendered) from the CTs, once per case."""
 
     KEPT_CASES = 4
 
@@ -79,7 +79,7 @@ class CaseMaker:
         sample = sample_case()
         self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
         self.parts = {}
-        self._scenes: dict[int, dict[str, app.Scene]] = {}  # case -> every detector's scene (read only)
+        self._plans: dict[int, tuple[dict, dict]] = {}  # case -> (every detector's plan, the scenes rendered)
         second = load_second_ct() if second_ct else None
         if second is not None:
             self.cts["abdomen"] = (second, default_shared_dir() / CT_RELATIVE_PATH, CENTROIDS_PATH)
@@ -92,17 +92,24 @@ class CaseMaker:
 
     def scenes(self, case: int, detectors: set[str]) -> dict[str, app.Scene]:
         """The case's scene on each of ``detectors`` (a new pose is drawn until every detector shows 3 adjacent
-        levels). The scenes of every detector are made, in one order, whichever are asked for: they draw from one
-        random stream, so a case run with some of its variants gets the images it gets with all of them. Made once
-        per case and kept for the ``KEPT_CASES`` latest cases (a scene is only read: every variant renders its own
-        image from it)."""
-        if case not in self._scenes:
-            while len(self._scenes) >= self.KEPT_CASES:
-                del self._scenes[next(iter(self._scenes))]
-            self._scenes[case] = self._every_scene(case)
-        return {d: self._scenes[case][d] for d in detectors}
+        levels). The scenes of every detector are planned (``app.plan_scene``), in one order, whichever are asked
+        for: they draw from one random stream, so a case run with some of its variants gets the images it gets with
+        all of them. Only the detectors asked for are rendered (``app.render_scene``: the renders draw nothing at
+        random, so the images are the same either way; a detector's renders are most of a scene's cost). Planned
+        once per case and kept, with the scenes rendered, for the ``KEPT_CASES`` latest cases (a scene is only
+        read: every variant renders its own image from it)."""
+        if case not in self._plans:
+            while len(self._plans) >= self.KEPT_CASES:
+                del self._plans[next(iter(self._plans))]
+            self._plans[case] = (self._every_plan(case), {})
+        plans, rendered = self._plans[case]
+        name = self.ct_name(case)
+        (ct, labels, _), _, _ = self.cts[name]
+        for d in sorted(set(detectors) - set(rendered)):
+            rendered[d] = app.render_scene(plans[d], ct, labels, self.parts[name])
+        return {d: rendered[d] for d in detectors}
 
-    def _every_scene(self, case: int) -> dict[str, app.Scene]:
+    def _every_plan(self, case: int) -> dict[str, app.ScenePlan]:
         name = self.ct_name(case)
         (ct, labels, centroids), _, _ = self.cts[name]
         if name not in self.parts:
@@ -111,8 +118,8 @@ class CaseMaker:
         for _ in range(20):
             pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids)
             try:
-                return {d: app.make_scene(name, ct, labels, centroids, self.parts[name], pose, motions,
-                                          app.DETECTORS[d], rng) for d in sorted(app.DETECTORS)}
+                return {d: app.plan_scene(name, centroids, pose, motions, app.DETECTORS[d],
+                                          app.make_geometry(ct, app.DETECTORS[d]), rng) for d in sorted(app.DETECTORS)}
             except LookupError:
                 continue
         raise RuntimeError(f"case {case}: no pose with 3 adjacent visible levels in 20 draws")

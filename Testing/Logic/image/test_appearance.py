@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from appearance_cases import copied
 from PIL import Image
 from scipy import ndimage
 from simulated_cases import simulated_ap_case
@@ -255,14 +256,20 @@ def case(sample_ct):
     return simulated_ap_case(sample_ct, 4321, "T8", 11)
 
 
-def _appearance(sample_ct, xray, drr_cache_dir):
+def _after_spatial(sample_ct, xray, drr_cache_dir, clicks=None):
+    """(logic, state): ``xray`` registered to the spatial stage, without clicks or with ``clicks``."""
     ct, _, centroids = sample_ct
     logic = CarmRegLogic()
     params = RegistrationParameters(cache_dir=drr_cache_dir)
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))), params)
+    clicks = Landmarks2D([], np.zeros((0, 2))) if clicks is None else clicks
+    state = logic.prepare(ct, centroids, xray, clicks, params)
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
-    return state.appearance
+    return logic, state
+
+
+def _appearance(sample_ct, xray, drr_cache_dir):
+    return _after_spatial(sample_ct, xray, drr_cache_dir)[1].appearance
 
 
 def _inverted_in_field(pixels: np.ndarray) -> np.ndarray:
@@ -277,8 +284,18 @@ def _bright_png(pixels: np.ndarray, geometry, path) -> XrayImage:
     return load_xray(path, sdd_mm=geometry.intrinsics.sdd_mm, pixel_spacing_mm=geometry.intrinsics.pixel_spacing_mm)
 
 
+@pytest.fixture(scope="module")
+def bright_png(sample_ct, case, tmp_path_factory, drr_cache_dir):
+    """(logic, state): the case stored as a bone-bright PNG, no clicks, after the spatial stage (read only: a test
+    that runs on copies it)."""
+    sim, geometry = case
+    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path_factory.mktemp("bright") / "bright.png")
+    return _after_spatial(sample_ct, bright, drr_cache_dir)
+
+
 @pytest.mark.slow
-def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct, case, tmp_path, drr_cache_dir):
+def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct, case, bright_png, tmp_path,
+                                                                      drr_cache_dir):
     sim, geometry = case
     pixels = sim.pixels.astype(np.float64)
     dark = XrayImage(pixels.astype(np.float32), geometry.intrinsics, geometry.sod_mm, False, "dark")  # header wrong
@@ -289,9 +306,9 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
     # linear intensity, the right polarity's refined GC fell to 0.28 and the wrong one won
     assert a.storage == "log-display" and a.scores["refined"]["bone-dark"] > 0.6
 
-    bright = _bright_png(pixels, geometry, tmp_path / "bright.png")
-    assert bright.bone_dark  # what a PNG "says": nothing, so the old default
-    b = _appearance(sample_ct, bright, drr_cache_dir)
+    state = bright_png[1]
+    assert state.xray.bone_dark  # what a PNG "says": nothing, so the old default
+    b = state.appearance
     assert (b.polarity, b.clear, b.storage) == ("bone-bright", True, "log-display")
 
     x = pixels / pixels.max()
@@ -306,7 +323,7 @@ def test_polarity_is_found_for_bone_dark_bone_bright_and_an_8_bit_jpeg(sample_ct
 
 @pytest.mark.slow
 def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_levels_stage_reuses_them(
-        sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
+        bright_png, monkeypatch):
     """A bone-bright PNG without clicks: each polarity's spatial-map peaks are refined on the image, bone bright
     wins clearly, and the no-click level answer starts from those refinements instead of computing them again
     (the levels stage refines none of those peaks; its hypotheses carry the check's refinements, or a better one
@@ -321,14 +338,9 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
         return fresh_fit(ctx, start, shift)
 
     monkeypatch.setattr(levels, "unlabelled_fit", counted)
-    ct, _, centroids = sample_ct
-    sim, geometry = case
-    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
-    params = RegistrationParameters(cache_dir=drr_cache_dir)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, bright, Landmarks2D([], np.zeros((0, 2))), params)
-    for stage in ("database", "spatial", "levels"):
-        logic.run_stage(state, stage)
+    logic, state = copied(bright_png[1])  # the spatial stage never calls it through ``levels``
+    params = state.parameters
+    logic.run_stage(state, "levels")
     a, evidence = state.appearance, state.image_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (refined)", True)
     assert evidence.scores["bone-bright"] >= evidence.scores["bone-dark"] + 0.05
@@ -349,35 +361,41 @@ def test_without_clicks_each_polarity_is_refined_from_its_map_peaks_and_the_leve
     assert all(g.labels == [] for g in evidence.registered["bone-bright"])  # the answer named copies
 
 
-def _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
-    """(logic, state) of the case stored as a bone-bright PNG with unnamed clicks, after the spatial stage, under
-    stop 13's clear orientation lead at the clicks (0.10) and without stop 32's close call: its two leaders are
-    wrong labellings, along which the stored orientation leads its mirror by less than that, so the appearance is
-    not trusted and the levels stage judges it again with its winner (with today's 0.05, or with the close call's
-    neighbours judged, it is trusted from the start)."""
+def _orientation_leads_of_stop_13(monkeypatch):
+    """Stop 13's clear orientation lead at the clicks (0.10), without stop 32's close call."""
     import carmreg.logic.image.appearance as appearance
     import carmreg.logic.registration.click_orientation as click_orientation
 
     monkeypatch.setattr(appearance, "CLEAR_ORIENTATION_AT_CLICKS_GC", 0.10)
     monkeypatch.setattr(click_orientation, "CLOSE_ORIENTATION_AT_CLICKS_GC", 0.0)
-    ct, _, centroids = sample_ct
+
+
+@pytest.fixture(scope="module")
+def bright_png_unnamed(sample_ct, case, tmp_path_factory, drr_cache_dir):
+    """(logic, state) of the case stored as a bone-bright PNG with unnamed clicks, after the spatial stage, under
+    ``_orientation_leads_of_stop_13``: its two leaders are wrong labellings, along which the stored orientation leads
+    its mirror by less than that, so the appearance is not trusted and the levels stage judges it again with its
+    winner (with today's 0.05, or with the close call's neighbours judged, it is trusted from the start). Read only:
+    ``_bright_png_unnamed_after_spatial`` gives each test a copy."""
     sim, geometry = case
-    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path / "bright.png")
-    params = RegistrationParameters(cache_dir=drr_cache_dir)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, bright, Landmarks2D([None] * 3, sim.clicks.uv_px), params)
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
-    return logic, state
+    bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path_factory.mktemp("bright") / "bright.png")
+    with pytest.MonkeyPatch.context() as patched:
+        _orientation_leads_of_stop_13(patched)
+        return _after_spatial(sample_ct, bright, drr_cache_dir, Landmarks2D([None] * 3, sim.clicks.uv_px))
+
+
+def _bright_png_unnamed_after_spatial(bright_png_unnamed, monkeypatch):
+    """A copy of ``bright_png_unnamed`` to run the levels stage on, under the same orientation leads."""
+    _orientation_leads_of_stop_13(monkeypatch)
+    return copied(bright_png_unnamed[1])
 
 
 @pytest.mark.slow
-def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sample_ct, case, tmp_path,
-                                                                          drr_cache_dir, monkeypatch):
+def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(bright_png_unnamed, monkeypatch):
     """The levels stage judges the appearance again with its winner (next test); a cancel in the middle (here in
     the orientation check at the clicks) leaves the appearance, the polarity evidence and the warnings as the
     spatial stage left them, not half updated (a re-run would otherwise trust an orientation never checked)."""
-    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch)
+    logic, state = _bright_png_unnamed_after_spatial(bright_png_unnamed, monkeypatch)
     before = json.dumps(state.appearance.as_dict(), sort_keys=True, default=str)
     at_clicks, warnings = state.click_polarity, list(state.warnings)
 
@@ -393,12 +411,12 @@ def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(sampl
 
 @pytest.mark.slow
 def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
-        sample_ct, case, tmp_path, drr_cache_dir, monkeypatch):
+        case, bright_png_unnamed, monkeypatch):
     """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered
     under both polarities, bone bright wins clearly, and the levels stage continues from those registrations
     rather than computing them again; the contest's winner, not among them, is judged too (``judged_also``)."""
     sim = case[0]
-    logic, state = _bright_png_unnamed_after_spatial(sample_ct, case, tmp_path, drr_cache_dir, monkeypatch)
+    logic, state = _bright_png_unnamed_after_spatial(bright_png_unnamed, monkeypatch)
     assert not state.appearance.trusted
     a, at_clicks = state.appearance, state.click_polarity
     assert (a.polarity, a.decided_by, a.clear) == ("bone-bright", "image (at the clicks' poses)", True)

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from appearance_cases import copied
 from simulated_cases import simulated_ap_case
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
@@ -248,58 +249,62 @@ def case(sample_ct):
     return simulated_ap_case(sample_ct, 2468, "T10", 5)
 
 
-def _judged(sample_ct, pixels, uv_px, labels, geometry, drr_cache_dir, rivals):
-    """Run the pipeline to the polarity at the clicks, then judge ``rivals`` at the clicks' poses."""
+def _after_spatial(sample_ct, pixels, uv_px, labels, geometry, drr_cache_dir):
+    """(logic, state): the pipeline run to the polarity at the clicks (the spatial stage) on ``pixels``."""
     ct, _, centroids = sample_ct
     xray = XrayImage(pixels.astype(np.float32).copy(), geometry.intrinsics, geometry.sod_mm, True, "test")
-    p = RegistrationParameters(cache_dir=drr_cache_dir)
     logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D(list(labels), uv_px), p)
+    state = logic.prepare(ct, centroids, xray, Landmarks2D(list(labels), uv_px),
+                          RegistrationParameters(cache_dir=drr_cache_dir))
     for stage in ("database", "spatial"):
         logic.run_stage(state, stage)
-    a = state.appearance
+    return logic, state
+
+
+@pytest.fixture(scope="module")
+def as_acquired(sample_ct, case, drr_cache_dir):
+    """``_after_spatial`` of the case as acquired, its named clicks (read only: a test that runs on copies it)."""
+    sim, geometry = case
+    return _after_spatial(sample_ct, sim.pixels, sim.clicks.uv_px, sim.clicks.labels, geometry, drr_cache_dir)
+
+
+def _judged(state, rivals):
+    """Judge ``rivals`` at the clicks' poses of ``state`` (after the spatial stage; nothing in it changes)."""
+    p, a = state.parameters, state.appearance
     ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.xray_line_integral,
                      state.mask, 0.0, 0.0, p.fine, p.refine_coarse, p.magnification_range, p.depth_far_mm,
                      p.depth_step_mm)
     contexts = {o: oriented_context(ctx, o) for o in rivals}
-    return orientation_at_clicks(contexts, state.click_polarity.registered[a.polarity], xray.size_px,
+    return orientation_at_clicks(contexts, state.click_polarity.registered[a.polarity], state.xray.size_px,
                                  p.identify.rule, names_follow_clicks=True)
 
 
 @pytest.mark.slow
 def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_is_told(sample_ct, case,
-                                                                                       drr_cache_dir):
+                                                                                       as_acquired, drr_cache_dir):
     sim, geometry = case
     labels, uv = sim.clicks.labels, sim.clicks.uv_px
-    shown = _judged(sample_ct, sim.pixels, uv, labels, geometry, drr_cache_dir,
-                    ("mirrored-left-right", "turned-180"))
+    shown = _judged(as_acquired[1], ("mirrored-left-right", "turned-180"))
     assert shown.scores["as-stored"] >= max(shown.scores["mirrored-left-right"],
                                             np.nan_to_num(shown.scores["turned-180"], nan=-1.0)) \
         + CLEAR_ORIENTATION_AT_CLICKS_GC
     assert not shown.fitted["turned-180"]  # named clicks upside down: no C-arm pose puts T9 below T11
 
-    upside_down = _judged(sample_ct, sim.pixels[::-1, ::-1], orient_uv(uv, "turned-180", (512, 512)), labels,
-                          geometry, drr_cache_dir, ("mirrored-left-right", "turned-180"))
+    _, turned = _after_spatial(sample_ct, sim.pixels[::-1, ::-1], orient_uv(uv, "turned-180", (512, 512)), labels,
+                               geometry, drr_cache_dir)
+    upside_down = _judged(turned, ("mirrored-left-right", "turned-180"))
     assert upside_down.fitted["turned-180"]
     assert upside_down.scores["turned-180"] >= upside_down.scores["as-stored"] + REFUSE_ORIENTATION_AT_CLICKS_GC
 
 
 @pytest.mark.slow
-def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again(sample_ct, case, drr_cache_dir,
-                                                                                 monkeypatch):
+def test_judging_the_orientation_again_on_the_same_image_registers_nothing_again(as_acquired, monkeypatch):
     """The levels stage judges the orientation again with its winner added: the labellings the spatial stage already
     registered on each rival are reused (a registration is seeded: the same inputs give the same fit), so the
     second judgement, with nothing added, registers nothing and finds the same evidence."""
     import carmreg.logic.registration.click_orientation as click_orientation
 
-    sim, geometry = case
-    ct, _, centroids = sample_ct
-    xray = XrayImage(sim.pixels.astype(np.float32).copy(), geometry.intrinsics, geometry.sod_mm, True, "test")
-    p = RegistrationParameters(cache_dir=drr_cache_dir)
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D(list(sim.clicks.labels), sim.clicks.uv_px), p)
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
+    logic, state = copied(as_acquired[1])
     a = state.appearance
     first = dict(a.orientation_at_clicks)
     memo = state.turned_fits[(a.polarity, a.storage)]

@@ -22,7 +22,9 @@ from carmreg.logic.registration.labellings import (
 )
 from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence, decide, decide_image_only, judge
 from carmreg.logic.registration.levels import central_level, visible_levels
+from carmreg.logic.registration.outcome import level_check
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
+from carmreg.logic.registration.state import STAGES
 from carmreg.logic.simulation.evaluation import evaluate
 
 CT_NAMES = ["T9", "T10", "T11", "T12", "L1"]
@@ -611,6 +613,17 @@ def simulated(sample):
     return sim, xray
 
 
+def _registered_to(sample, simulated, clicks, cache_dir, last: str):
+    """The stages of ``register`` up to ``last`` (included) and the logic that ran them: a test that asserts on
+    those stages' answers only need not pay for the refinement and the final DRR after them."""
+    ct, _, centroids = sample
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, simulated[1], clicks, RegistrationParameters(cache_dir=cache_dir))
+    for stage in STAGES[:STAGES.index(last) + 1]:
+        logic.run_stage(state, stage)
+    return logic, state
+
+
 def _register(sample, simulated, clicks, cache_dir, stop_hopeless=True):
     ct, _, centroids = sample
     sim, xray = simulated
@@ -647,7 +660,7 @@ def test_stopping_hopeless_refinements_leaves_the_level_verdict_as_full_refineme
     assert not any(h["stopped_at_evaluations"] for h in full.hypotheses)
     monkeypatch.setattr(early_stop, "SAFETY", 1.0)
     monkeypatch.setattr(early_stop, "SLACK", 0.0)
-    check = _register(sample, simulated, clicks, drr_cache_dir)[0].level_check
+    check = level_check(_registered_to(sample, simulated, clicks, drr_cache_dir, "levels")[1])  # as ``register``
     assert (check.status, check.assigned_labels, check.winner_labels, check.runner_up_labels) == \
         (full.status, full.assigned_labels, full.winner_labels, full.runner_up_labels)
     assert check.margin == full.margin
@@ -694,7 +707,8 @@ def test_unnamed_clicks_get_their_true_names_with_a_clear_margin(simulated, unna
 def test_names_one_level_off_are_never_reported_confident(sample, simulated, drr_cache_dir):
     sim, _ = simulated
     wrong = Landmarks2D(shifted_labels(sim.clicks.labels, 1, sample[2].labels), sim.clicks.uv_px)
-    result, _ = _register(sample, simulated, wrong, drr_cache_dir)
+    logic, state = _registered_to(sample, simulated, wrong, drr_cache_dir, "fine")  # the answer and its warnings
+    result = logic.result(state)
     check = result.level_check
     assert check.mode == "named" and check.status in ("contradicted", "ambiguous"), check
     assert check.winner_labels == list(sim.clicks.labels)

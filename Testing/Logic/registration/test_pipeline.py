@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+from appearance_cases import copied
 from simulated_cases import intensifier_case
 
 from carmreg.logic.drr.cpu import render_line_integrals
@@ -55,16 +56,21 @@ def _simulated(sample, seed):
 @pytest.fixture(scope="module")
 def registered(sample, drr_cache_dir):
     """``registered(seed)``: (the simulated case of ``seed`` (``_simulated``), its registration), each seed registered
-    once in the module."""
+    once in the module, as ``CarmRegLogic.register`` does; ``registered(seed, state=True)`` adds the state it ended
+    with (read only: run stages on a copy, ``appearance_cases.copied``)."""
     done = {}
 
-    def register(seed: int):
+    def register(seed: int, state: bool = False):
         if seed not in done:
             ct, _, centroids = sample
             sim, xray = _simulated(sample, seed)
-            done[seed] = sim, CarmRegLogic().register(ct, centroids, xray, sim.clicks,
-                                                      RegistrationParameters(cache_dir=drr_cache_dir))
-        return done[seed]
+            logic = CarmRegLogic()
+            params = RegistrationParameters(cache_dir=drr_cache_dir)
+            registration = logic.prepare(ct, centroids, xray, sim.clicks, params)
+            for name in STAGES:
+                logic.run_stage(registration, name)
+            done[seed] = sim, logic.result(registration), registration
+        return done[seed] if state else done[seed][:2]
 
     return register
 
@@ -182,14 +188,9 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, drr_cache_dir, 
         assert paths[key].stat().st_size > 0
 
 
-def test_rerunning_a_stage_forgets_the_later_ones(sample, drr_cache_dir):
-    ct, _, centroids = sample
-    sim, xray = _simulated(sample, 1)
-    logic = CarmRegLogic()  # bookkeeping only: no level check, no pincushion estimate
-    params = RegistrationParameters(cache_dir=drr_cache_dir, level_check=False, estimate_pincushion=False)
-    state = logic.prepare(ct, centroids, xray, sim.clicks, params)
-    for name in STAGES:
-        logic.run_stage(state, name)
+def test_rerunning_a_stage_forgets_the_later_ones(registered):
+    logic, state = copied(registered(1, state=True)[2])  # every stage run
+    assert state.refined_pose is not None and state.drr_line_integral is not None
     logic.run_stage(state, "fine")  # the user goes back one stage
     assert state.refined_pose is None and state.drr_line_integral is None
     assert [s.name for s in state.stages] == ["database", "spatial", "levels", "depth", "fine"]
