@@ -370,17 +370,18 @@ class AppearanceChecks:
         (``_orientation_with_winner``). Otherwise, only for an image taken as stored, or refused by the orientation
         check at the clicks on the stored image's leaders alone (``_refused_at_clicks``; any other refusal stays),
         whose judged labellings did not include the winner: it is registered under both polarities as the leaders were
-        (``click_polarity.judged_also``). Whenever the winner's registration there is worse than the pose the contest
-        found for it (``ClickPolarity.found_better``; judged among the leaders, or just registered so), the orientation
-        clear (only the polarity in question), it is refitted under both from that pose (``judged_again_from``). Since
-        stop 51 also for a winner registered by ``judged_also``: seen, case 281's scene drawn on the chest CT, T6-T8
-        clicked unnamed on a view turned about 10 degrees, judged on T2-T7 (all wrong); T6-T8 won at GC 0.82 (from its
-        neighbour's pose), registered afresh it reached 0.18, and the right answer stayed ambiguous. When the image
-        confirms the polarity in use by ``CLEAR_WITH_WINNER_GC`` (``click_polarity.confirms``) and
-        ``decide_polarity`` agrees (a header conflict stays one), that verdict is taken and the orientation judged
-        again at the clicks with the winner, the stored one clear only by the same lead: the winner was chosen on
-        the image as stored and as converted, so the evidence leans toward both. Otherwise nothing changes. All or
-        nothing: a cancel on the way leaves the appearance as it was."""
+        (``click_polarity.judged_also``). Whenever the winner's registration there - judged among the leaders, or just
+        registered so - is worse than the pose the contest found for it (``ClickPolarity.found_better``), the
+        orientation clear (only the polarity in question), it is refitted under both from that pose
+        (``judged_again_from``; a winner judged among the leaders only then, since stop 47; one registered afresh
+        too since stop 51 - seen, case 281's scene drawn on the chest CT, T6-T8 clicked unnamed on a view turned about
+        10 degrees, judged on T2-T7, all wrong: T6-T8 won at GC 0.82 from its neighbour's pose, registered afresh it
+        reached 0.18, and the right answer stayed ambiguous). When the image confirms the polarity in use by
+        ``CLEAR_WITH_WINNER_GC`` (``click_polarity.confirms``) and ``decide_polarity`` agrees (a header conflict
+        stays one), that verdict is taken and the orientation judged again at the clicks with the winner, the stored
+        one clear only by the same lead: the winner was chosen on the image as stored and as converted, so the
+        evidence leans toward both. Otherwise nothing changes. All or nothing: a cancel on the way leaves the
+        appearance as it was."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         a.scores.pop("at_clicks_with_winner", None)
         if a.trusted:
@@ -392,17 +393,15 @@ class AppearanceChecks:
             return a.trusted
         contexts = self._polarity_contexts(state, cp.dark_storage)
         names = ", ".join(winner.labels)
-        if judged:
-            self._report("levels", 0.99, f"judging the X-ray's appearance again at the pose found for {names}")
-            extended = judged_again_from(contexts, cp, winner, p.identify.rule)
-        else:
+        extended = cp
+        if not judged:
             planned = plan_labelling(contexts["bone-dark"], winner.labels, winner.shift, winner.points_lps_mm,
                                      winner.uv_px)
             self._report("levels", 0.99, f"judging the X-ray's appearance with {names} too")
             extended = judged_also(contexts, cp, planned, p.identify.rule)
-            if a.orientation_clear and extended.found_better(winner, a.polarity):
-                self._report("levels", 0.99, f"judging the X-ray's appearance again at the pose found for {names}")
-                extended = judged_again_from(contexts, extended, winner, p.identify.rule)
+        if a.orientation_clear and extended.found_better(winner, a.polarity):  # a judged winner always, here
+            self._report("levels", 0.99, f"judging the X-ray's appearance again at the pose found for {names}")
+            extended = judged_again_from(contexts, extended, winner, p.identify.rule)
         again = self._polarity_again(state, extended.scores, REFINED_AT_CLICKS, extended.fits)
         if not (again.clear and again.polarity == a.polarity and confirms(extended, a.polarity)):
             a.scores["at_clicks_with_winner"] = extended.as_dict()
