@@ -35,8 +35,7 @@ def appearance_case_registrar(tmp_path_factory, cache_dir: str, with_clicks: boo
             pytest.skip("the second CT (../shared) is not here")
         logic, state, truth = bench.prepared_case(maker, case, variant_name, tmp_path_factory.mktemp(variant_name),
                                                   cache_dir, clicks=with_clicks, names=names)
-        for stage in ("database", "spatial"):
-            logic.run_stage(state, stage)
+        logic.run_through(state, "spatial")
         return logic, state, truth
 
     return registered

@@ -149,7 +149,8 @@ def take_pincushion(state: RegistrationState, estimate: PincushionEstimate) -> N
 
 
 class CarmRegLogic:
-    """Headless logic class: ``register(...)`` or ``prepare(...)`` then ``run_stage(state, name)``."""
+    """Headless logic class: ``register(...)``, or ``prepare(...)`` then ``run_stage(state, name)`` or
+    ``run_through(state, last)``."""
 
     def __init__(self, progress=None):
         self.progress = progress
@@ -205,9 +206,14 @@ class CarmRegLogic:
                  parameters: RegistrationParameters | None = None) -> RegistrationResult:
         """Run every stage and return the result (``ok`` False, with reasons, when a check fails)."""
         state = self.prepare(ct, ct_landmarks, xray, xray_landmarks, parameters)
-        for name in STAGES:
-            self.run_stage(state, name)
+        self.run_through(state)
         return self.result(state)
+
+    def run_through(self, state: RegistrationState, last: str = STAGES[-1]) -> None:
+        """Run the stages in order (``STAGES``), the first through ``last``: a registration from ``prepare`` taken as
+        far as a script or test needs it (``register`` takes it through every stage)."""
+        for name in STAGES[:STAGES.index(last) + 1]:
+            self.run_stage(state, name)
 
     # ------------------------------------------------------------------ stages
     def run_stage(self, state: RegistrationState, name: str) -> StageResult:

@@ -263,8 +263,7 @@ def _after_spatial(sample_ct, xray, drr_cache_dir, clicks=None):
     params = RegistrationParameters(cache_dir=drr_cache_dir)
     clicks = Landmarks2D([], np.zeros((0, 2))) if clicks is None else clicks
     state = logic.prepare(ct, centroids, xray, clicks, params)
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "spatial")
     return logic, state
 
 

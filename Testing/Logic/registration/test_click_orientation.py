@@ -256,8 +256,7 @@ def _after_spatial(sample_ct, pixels, uv_px, labels, geometry, drr_cache_dir):
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, Landmarks2D(list(labels), uv_px),
                           RegistrationParameters(cache_dir=drr_cache_dir))
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "spatial")
     return logic, state
 
 

@@ -24,7 +24,6 @@ from carmreg.logic.registration.level_confidence import ConfidenceRule, Evidence
 from carmreg.logic.registration.levels import central_level, visible_levels
 from carmreg.logic.registration.outcome import level_check
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
-from carmreg.logic.registration.state import STAGES
 from carmreg.logic.simulation.evaluation import evaluate
 
 CT_NAMES = ["T9", "T10", "T11", "T12", "L1"]
@@ -619,8 +618,7 @@ def _registered_to(sample, simulated, clicks, cache_dir, last: str):
     ct, _, centroids = sample
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, simulated[1], clicks, RegistrationParameters(cache_dir=cache_dir))
-    for stage in STAGES[:STAGES.index(last) + 1]:
-        logic.run_stage(state, stage)
+    logic.run_through(state, last)
     return logic, state
 
 

@@ -67,8 +67,7 @@ def registered(sample, drr_cache_dir):
             logic = CarmRegLogic()
             params = RegistrationParameters(cache_dir=drr_cache_dir)
             registration = logic.prepare(ct, centroids, xray, sim.clicks, params)
-            for name in STAGES:
-                logic.run_stage(registration, name)
+            logic.run_through(registration)
             done[seed] = sim, logic.result(registration), registration
         return done[seed] if state else done[seed][:2]
 
