@@ -110,6 +110,13 @@ class Evidence:
                    best_fit_mpde_mm=number(fit.get("best_fit_mpde_mm")))
 
 
+POOR_AGREEMENT_CAUSES = ("bone barely shows (a large patient, a low dose), or the X-ray is not of this CT's patient "
+                         "and levels")
+"""What the image-agreement check's reason tells the user to look for: seen on the appearance benchmark's large
+patients, and on real X-rays not of the CT (``Testing/Benchmarks/bench_real_xrays.py``: a shoulder frame with clicks,
+GC 0.22-0.395 at the best labelling; another patient's chest radiograph without clicks, 0.35)."""
+
+
 def landmark_limit_mm(rival_mpde_mm: float, rule: ConfidenceRule) -> float:
     """The click mPDE (detector mm) a winner may have against a rival's: ``landmark_ratio`` x the rival's +
     ``landmark_slack_mm``, never above ``max_landmark_mpde_mm`` (no rival, nan: the cap alone)."""
@@ -124,7 +131,7 @@ def check_results(e: Evidence, rule: ConfidenceRule, landmarks: bool = True) -> 
                                  "ok": bool(e.gc >= rule.min_similarity)}
     if not checks["image_agreement"]["ok"]:
         reasons.append(f"the image agrees poorly even with the best labelling (GC {e.gc:.2f} < "
-                       f"{rule.min_similarity:.2f})")
+                       f"{rule.min_similarity:.2f}: {POOR_AGREEMENT_CAUSES})")
     if landmarks and np.isfinite(e.winner_mpde_mm):
         against_mpde_mm, against_labels = e.landmark_rival()
         limit = landmark_limit_mm(against_mpde_mm, rule)

@@ -98,6 +98,7 @@ def run_one(run: dict, work: Path, cache_dir: str) -> dict:
         lc, ap = doc.get("level_check") or {}, doc.get("appearance") or {}
         row.update(status=lc.get("status"), margin=lc.get("margin"), assigned=lc.get("assigned_labels"),
                    reasons=lc.get("reasons"), polarity=ap.get("polarity"), polarity_clear=ap.get("clear"),
+                   agreement_gc=((lc.get("checks") or {}).get("image_agreement") or {}).get("gc"),
                    levels_in_view=[lv["label"] for lv in doc.get("levels") or [] if lv.get("in_image")])
     return row
 

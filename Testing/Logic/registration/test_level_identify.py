@@ -99,6 +99,7 @@ def test_poor_image_agreement_alone_makes_a_clear_lead_ambiguous():
     assert decide([_h(["T10"], 0.50, gc=0.50), _h(["T11"], 0.60)], None, RULE).status == "confident"
     v = decide([_h(["T10"], 0.50, gc=0.15), _h(["T11"], 0.60)], None, RULE)
     assert v.status == "ambiguous" and "agrees poorly" in v.reasons[0]
+    assert "not of this CT's patient" in v.reasons[0]  # what to look for when it fails: the wrong image, among others
     assert not v.checks["image_agreement"]["ok"] and v.checks["stability"]["ok"]
     # a contradiction also needs an image that agrees with the labelling it prefers
     named = _h(["T11"], 0.60)
