@@ -38,7 +38,8 @@ ROOT = Path(__file__).resolve().parents[2]
 REAL = ROOT.parent / "shared" / "data" / "real-xray-dicom"
 SAMPLE = ROOT / "Resources" / "SampleCase"
 SHOULDER, CHEST = "siemens_rf_fluoro.dcm", "cr_monochrome1_jpeg.dcm"
-GEOMETRY = {SHOULDER: ["--sdd-mm", "1000", "--pixel-spacing-mm", "0.45"], CHEST: ["--sdd-mm", "1800"]}
+SHOULDER_PIXEL_MM = 0.45  # the user's guess for a 9-inch intensifier's 512 px (the file gives none)
+GEOMETRY = {SHOULDER: ["--sdd-mm", "1000", "--pixel-spacing-mm", str(SHOULDER_PIXEL_MM)], CHEST: ["--sdd-mm", "1800"]}
 PLACEMENTS = 5
 SEED = 52
 
@@ -70,7 +71,7 @@ def runs(size_px: tuple[int, int]) -> list[dict]:
     rng = np.random.default_rng(SEED + 1)
     levels = ct_levels()
     todo = [{"xray": SHOULDER, "mode": "none", "placement": None, "clicks": None}]
-    for k, uv in enumerate(click_placements(size_px, 0.45, PLACEMENTS, SEED)):
+    for k, uv in enumerate(click_placements(size_px, SHOULDER_PIXEL_MM, PLACEMENTS, SEED)):
         first = int(rng.integers(0, len(levels) - 2))
         named = {name: p.tolist() for name, p in zip(levels[first:first + 3], uv, strict=True)}
         todo += [{"xray": SHOULDER, "mode": "unnamed", "placement": k, "clicks": uv.tolist()},
@@ -134,12 +135,12 @@ def main(argv=None) -> int:
 
     shoulder = pydicom.dcmread(REAL / SHOULDER, stop_before_pixels=True)
     rows, built = [], set()
-    for k, run in enumerate(runs((int(shoulder.Columns), int(shoulder.Rows))), 1):
-        row = run_one(run, args.out / f"{k:02d}-{Path(run['xray']).stem}-{run['mode']}", args.cache_dir)
+    for number, run in enumerate(runs((int(shoulder.Columns), int(shoulder.Rows))), 1):
+        row = run_one(run, args.out / f"{number:02d}-{Path(run['xray']).stem}-{run['mode']}", args.cache_dir)
         row["built_database"] = run["xray"] not in built  # the first run of each X-ray builds its database
         built.add(run["xray"])
         rows.append(row)
-        print(json.dumps({k: v for k, v in row.items() if k != "reasons"}), flush=True)
+        print(json.dumps({key: value for key, value in row.items() if key != "reasons"}), flush=True)
         (args.out / "results_real_xrays.json").write_text(json.dumps(rows, indent=1))
     print(summarize(rows))
     return 0
