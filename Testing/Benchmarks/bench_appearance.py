@@ -180,8 +180,7 @@ def registered_to_levels(case: int, variant_name: str, cache_dir: str, clicks: b
     diagnostic scripts (``score_true_pose.py``, ``labelling_starts.py``) take it."""
     logic, state, truth = prepared_case(CaseMaker(second_ct=True), case, variant_name, Path(tempfile.mkdtemp()),
                                         cache_dir, clicks=clicks)
-    for stage in ("database", "spatial", "levels"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "levels")
     return state, np.array([truth["pose"][k] for k in POSE_NAMES])
 
 

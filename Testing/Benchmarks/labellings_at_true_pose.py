@@ -41,8 +41,7 @@ def contest_state(folder: Path, cache_dir: str):
     written again there), its clicks unnamed."""
     case = int(folder.parent.name.removeprefix("case"))
     logic, state, truth = bench.prepared_case(bench.CaseMaker(second_ct=True), case, folder.name, folder, cache_dir)
-    for stage in ("database", "spatial", "levels"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "levels")
     return logic, state, truth
 
 

@@ -28,7 +28,7 @@ from carmreg.logic.io.volumes import load_volume
 from carmreg.logic.io.xray import load_xray
 from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.pipeline import CarmRegLogic, ideal_clicks
-from carmreg.logic.registration.state import STAGES, RegistrationParameters
+from carmreg.logic.registration.state import RegistrationParameters
 
 
 def scan(folder: Path, shifts: list[float], cache_dir: str, mu_mm: float | None, pixel_mm: float | None) -> list[str]:
@@ -44,8 +44,7 @@ def scan(folder: Path, shifts: list[float], cache_dir: str, mu_mm: float | None,
                                                                     ("detector_pixel_mm", pixel_mm)) if v})
     logic = CarmRegLogic()
     state = logic.prepare(ct, ct_lm, xray, clicks, params)
-    for name in STAGES[:STAGES.index("refine")]:
-        logic.run_stage(state, name)
+    logic.run_through(state, "fine")
     start, spacing = state.pose.copy(), np.asarray(g["pixel_spacing_mm"], float)
     points = np.array([ct_lm.points_lps_mm[ct_lm.labels.index(lb)] for lb in clicks.labels])
     true_uv = project(np.asarray(truth["projection_matrix"], float), ct_lm.points_lps_mm)

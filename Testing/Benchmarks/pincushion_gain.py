@@ -63,8 +63,7 @@ def run_case(maker: bench.CaseMaker, case: int, vname: str, cache_dir: str) -> d
     """One case and variant, named clicks: the refine stage's profile and the seeds' re-runs (module docstring)."""
     logic, state, truth = bench.prepared_case(maker, case, vname, Path(tempfile.mkdtemp()), cache_dir,
                                               names=lambda t: t["clicked"])
-    for stage in ("database", "spatial", "levels", "depth", "fine"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "fine")
     prepared = state.geometry
     cents, clicked = state.ct_landmarks.as_dict(), set(truth["clicked"])
 

@@ -198,8 +198,7 @@ def _appearance_found(mirrored_display, clicks: Landmarks2D):
     ct, centroids, xray, _, params = mirrored_display
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, clicks, params)
-    for stage in ("database", "spatial"):
-        logic.run_stage(state, stage)
+    logic.run_through(state, "spatial")
     return state
 
 

@@ -27,7 +27,7 @@ from carmreg.logic.registration.pipeline import (
     pincushion_unknown,
     take_pincushion,
 )
-from carmreg.logic.registration.state import STAGES, drop_results_from
+from carmreg.logic.registration.state import drop_results_from
 from carmreg.logic.simulation.evaluation import evaluate
 
 
@@ -106,8 +106,7 @@ def test_an_uncalibrated_intensifier_gets_its_pincushion_from_the_image(sample_c
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, sim.clicks, params)
     pinhole = state.geometry
-    for name in STAGES:
-        logic.run_stage(state, name)
+    logic.run_through(state)
     result = logic.result(state)
     truth_mm = sim.distortion.k_per_mm2 * 100.0**3
     shift = result.geometry.intrinsics.distortion_mm
