@@ -55,27 +55,36 @@ def objective(geometry: CarmGeometry, poses: np.ndarray, points_lps_mm: np.ndarr
 
 
 def fine_search(geometry: CarmGeometry, start_pose: np.ndarray, points_lps_mm: np.ndarray, uv_px: np.ndarray,
-                params: FineParameters | None = None, should_stop=None) -> FineResult:
-    """Run CMA-ES from ``start_pose``; ``should_stop()`` is polled each generation (cancel)."""
+                params: FineParameters | None = None, should_stop=None, pinned: tuple = ()) -> FineResult:
+    """Run CMA-ES from ``start_pose``; ``should_stop()`` is polled each generation (cancel). ``pinned``: indices
+    of pose parameters held at their start value (searched over the others only; e.g. ``(0,)`` fits the clicks
+    with the source at a given depth tx)."""
     params = params or FineParameters()
     t0 = time.perf_counter()
     x0 = np.asarray(start_pose, float).copy()
     x0[3:] = np.clip(x0[3:], -params.bounds[3], params.bounds[3])
-    es = cma_strategy(x0, params.sigma, params.bounds, params.popsize, params.max_evaluations, params.seed,
-                      tolx=1e-4)
+    free = np.array([k for k in range(6) if k not in pinned])
+    es = cma_strategy(x0[free], np.asarray(params.sigma, float)[free], np.asarray(params.bounds, float)[free],
+                      params.popsize, params.max_evaluations, params.seed, tolx=1e-4)
+
+    def poses(searched: np.ndarray) -> np.ndarray:  # (m, len(free)) -> (m, 6), the pinned parameters as at x0
+        out = np.repeat(x0[None], len(searched), axis=0)
+        out[:, free] = searched
+        return out
+
     best = (np.inf, np.inf, x0)
     result = FineResult(x0, np.inf, np.inf, 0)
     while not es.stop():
         if should_stop is not None:
             should_stop()
-        population = es.ask()
+        population = poses(es.ask())
         f, m = objective(geometry, population, points_lps_mm, uv_px, params.rotation_weight_mm_per_deg2)
         es.tell(f)
         i = int(np.argmin(f))
         if f[i] < best[0]:
             best = (float(f[i]), float(m[i]), population[i].copy())
         result.convergence.append((es.countevals, best[1], best[0]))
-        result.trajectory.append((es.countevals, es.mean))
+        result.trajectory.append((es.countevals, poses(es.mean[None])[0]))
     result.objective, result.mpde_mm, result.pose = best
     result.evaluations = es.countevals
     result.seconds = time.perf_counter() - t0

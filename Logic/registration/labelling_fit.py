@@ -25,7 +25,7 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.volume import MuLevel
-from carmreg.logic.registration.depth import DepthResult, depth_search
+from carmreg.logic.registration.depth import DepthResult, depth_search, recenter_pose
 from carmreg.logic.registration.early_stop import rejoins
 from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
@@ -186,6 +186,25 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_
         ctx.on_labelling(list(fit.labels))
     settled = rejoins(fit.pose, fit.score, ctx.refine.sigma) if stop_rejoined and fit.refined else None
     return _refine_from(ctx, fit, np.asarray(start_pose, float), give_up=give_up, rejoined=settled)
+
+
+def nominal_depth_start(ctx: FitContext, fit: LabellingFit) -> np.ndarray:
+    """(6,) the clicks' landmark fit with the source at the nominal depth: the anchored fine search (Algorithm 4)
+    from the labelling's landmark pose moved to tx = 0 and re-centred on the clicks (``depth.recenter_pose``), tx
+    held there (``fine_search(pinned=(0,))``). The depth search reads the magnification from the clicks' spacing,
+    which a view tilted against the spine's curvature foreshortens: three upper thoracic clicks under a view turned
+    9 deg put the source 130 mm too far (chest scene 317), beyond the image refinement's reach (+-80 mm). At the
+    nominal depth (the anatomy at the isocentre, where the radiographer centres it) the clicks ask for the tilt
+    instead, and the image refinement from there found the true pose."""
+    start = fit.pose if fit.fine is None else np.asarray(fit.fine.pose, float)
+    start = recenter_pose(ctx.geometry, np.array([0.0, *start[1:]]), fit.points_lps_mm, fit.uv_px)
+    return fine_search(ctx.geometry, start, fit.points_lps_mm, fit.uv_px, ctx.fine, ctx.should_stop, pinned=(0,)).pose
+
+
+def refit_at_nominal_depth(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
+    """A registered labelling refined once more from ``nominal_depth_start``; the better refinement is kept
+    (``refit_from``, stopped once it settles back at the labelling's pose)."""
+    return refit_from(ctx, fit, nominal_depth_start(ctx, fit), stop_rejoined=True)
 
 
 def restart(ctx: FitContext, fit: LabellingFit, stop_rejoined: bool = False) -> LabellingFit:

@@ -18,10 +18,11 @@ Stages (each a plain function in its own module, returning a small result):
   fine      - anchored CMA-ES on the mPDE -> 6-DOF pose (``fine_search``, Algorithm 4);
   refine    - beyond the paper: 6-DOF CMA-ES on gradient correlation with a landmark term
               (``intensity_refine``), a wide coarse pass (4 mm; reused from the levels stage, which ran the
-              same computation for the chosen labelling) then a local one (3 mm); it fixes the out-of-plane
-              rotations and the magnification that three nearly collinear clicks cannot; its pose is kept only
-              if the clicks still agree with it. On a round field without a distortion calibration the local pass
-              also estimates the intensifier's pincushion (``pincushion``: the pass at fixed shifts, the best kept);
+              same computation for the chosen labelling; with clicks also run from their fit at the nominal
+              depth, ``labelling_fit.refit_at_nominal_depth``, the better kept) then a local one (3 mm); it fixes
+              the out-of-plane rotations and the magnification that three nearly collinear clicks cannot; its pose
+              is kept only if the clicks still agree with it. On a round field without a distortion calibration
+              the local pass also estimates the intensifier's pincushion (``pincushion``: the pass at fixed shifts, the best kept);
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector (``final_drr_detector``).
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
@@ -52,7 +53,14 @@ from carmreg.logic.registration.depth import depth_search
 from carmreg.logic.registration.fine import fine_search
 from carmreg.logic.registration.image_refine import intensity_refine
 from carmreg.logic.registration.image_starts import image_starts
-from carmreg.logic.registration.labelling_fit import FitContext, state_context, unshaded_context
+from carmreg.logic.registration.labelling_fit import (
+    FitContext,
+    LabellingFit,
+    refit_at_nominal_depth,
+    refit_from,
+    state_context,
+    unshaded_context,
+)
 from carmreg.logic.registration.labellings import ct_level_names
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
@@ -433,8 +441,8 @@ class CarmRegLogic:
         p = state.parameters
         if not p.refine.enabled:
             return {"enabled": False}
-        coarse_pose, reused = self._coarse_refined_pose(state, *_pair_arrays(state.pairs))
-        extra, estimate = {}, None
+        coarse_pose, reused, extra = self._coarse_refined_pose(state, *_pair_arrays(state.pairs))
+        estimate = None
         if pincushion_unknown(state):
             def progress(done: int, total: int) -> None:
                 self._report("refine", 0.5 + 0.4 * done / total,
@@ -482,20 +490,28 @@ class CarmRegLogic:
                                 should_stop=self._check_cancel)
 
     def _coarse_refined_pose(self, state: RegistrationState, points: np.ndarray, uv: np.ndarray
-                             ) -> tuple[np.ndarray, bool]:
+                             ) -> tuple[np.ndarray, bool, dict]:
         """The wide coarse pass: taken from the levels stage when it fully refined the chosen labelling from the
-        same landmark pose (the identical computation), else run here."""
+        same landmark pose (the identical computation), else run here; then, with clicks, refined once more from the
+        clicks' fit at the nominal depth (``labelling_fit.refit_at_nominal_depth``), the better kept. Returns (pose,
+        reused from the levels stage, what the nominal-depth start did for result.json)."""
         ident = state.identification
         if ident is not None and ident.mode == "image_only":
-            return np.asarray(ident.winner.pose, float), True
+            return np.asarray(ident.winner.pose, float), True, {}
         fit = chosen_fit(state)
-        if fit is not None and fit.refined and state.fine is fit.fine:
-            return fit.pose, True
-        p = state.parameters
-        r = intensity_refine(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.pose,
-                             state.xray_line_integral, state.mask, points, uv, p.refine_coarse,
-                             should_stop=self._check_cancel)
-        return r.pose, False
+        reused = fit is not None and fit.refined and state.fine is fit.fine
+        ctx = state_context(state, state.xray_line_integral, state.spatial.ty_mm, state.spatial.tz_mm,
+                            self._check_cancel)
+        if not reused:
+            labels = list(state.pairs.labels) if state.pairs is not None else []
+            fit = refit_from(ctx, LabellingFit(labels, 0, points, uv, state.depth, state.fine), state.pose)
+        if len(points) == 0 or not state.parameters.nominal_depth_start:
+            return fit.pose, reused, {}
+        other = refit_at_nominal_depth(ctx, fit.copy())
+        taken = other.refine is not fit.refine
+        return other.pose, reused, {"nominal_depth_start": {
+            "taken": taken, "objective": other.runs[-1], "objective_before": fit.score,
+            "stopped_back_at_evaluations": other.rejoined[-1] if len(other.rejoined) > len(fit.rejoined) else None}}
 
     def _final_drr(self, state: RegistrationState) -> dict:
         p, intr = state.parameters, state.geometry.intrinsics

@@ -53,6 +53,8 @@ class RegistrationParameters:
     refine_coarse: RefineParameters = field(default_factory=coarse_refine_parameters)
     refine: RefineParameters = field(default_factory=RefineParameters)
     refine_max_mpde_mm: float = 4.0         # refined pose rejected when the clicks disagree more than this
+    nominal_depth_start: bool = True        # with clicks: the coarse pass also refined from the clicks' fit at
+    #                                         the nominal depth (``labelling_fit.refit_at_nominal_depth``)
     estimate_pincushion: bool = True        # a round field without a distortion calibration: its pincushion
     #                                         estimated from the image by the refine stage (``pincushion``)
     level_check: bool = True                # named clicks: also try the names shifted +-1, +-2 levels

@@ -132,6 +132,21 @@ def test_fine_search_converges_on_exact_clicks_and_repeats_bit_for_bit():
     assert a.convergence[-1][1] <= a.convergence[0][1]
 
 
+def test_fine_search_holds_a_pinned_parameter_and_fits_the_others():
+    """``pinned=(0,)``: the source depth stays where it starts, the other five parameters fit the clicks; at the
+    true depth that is the true pose, 60 mm off it the clicks are fitted worse (the depth is not free)."""
+    true_pose = np.array([20.0, 3.0, -5.0, 1.0, 0.0, 0.0])
+    uv = _clicks(true_pose, idx=(1, 2, 3, 4, 5))
+    params = FineParameters(rotation_weight_mm_per_deg2=0.0, seed=7)
+    start = true_pose + [0.0, 4.0, -3.0, -1.0, 0, 0]
+    at_true = fine_search(GEOMETRY, start, SPINE_LPS_MM[1:6], uv, params, pinned=(0,))
+    assert at_true.pose[0] == 20.0 and at_true.mpde_mm < 0.05
+    assert np.abs(at_true.pose - true_pose).max() < 0.5
+    assert all(p[0] == 20.0 for _, p in at_true.trajectory)
+    off = fine_search(GEOMETRY, start + [60.0, 0, 0, 0, 0, 0], SPINE_LPS_MM[1:6], uv, params, pinned=(0,))
+    assert off.pose[0] == 80.0 and off.mpde_mm > 0.5
+
+
 def test_fine_stage_is_anchored_against_the_three_point_degeneracy():
     """Three nearly collinear clicks: the unanchored fit drives mPDE to ~0 with a wrong rotation and sends
     the other levels away; the anchored default keeps them close."""
