@@ -22,7 +22,8 @@ Stages (each a plain function in its own module, returning a small result):
               depth, ``labelling_fit.refit_at_nominal_depth``, the better kept) then a local one (3 mm); it fixes
               the out-of-plane rotations and the magnification that three nearly collinear clicks cannot; its pose
               is kept only if the clicks still agree with it. On a round field without a distortion calibration
-              the local pass also estimates the intensifier's pincushion (``pincushion``: the pass at fixed shifts, the best kept);
+              the local pass also estimates the intensifier's pincushion (``pincushion``: the pass at fixed
+              shifts, the best kept);
   final_drr - DRR of the full-resolution CT at the final pose on the X-ray's detector (``final_drr_detector``).
 
 Geometry: the nominal AP C-arm has its isocentre at the CT volume centre (paper 3.1.3) and its source at
