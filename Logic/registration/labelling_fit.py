@@ -169,11 +169,14 @@ def complete(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
     return fit_labelling(ctx, fit)
 
 
-def landmark_fit(ctx: FitContext, fit: LabellingFit) -> FineResult:
-    """The anchored landmark fit (Algorithm 4) of a planned labelling, from its depth pose. It depends on the
-    clicks, the labels, the geometry and ``ctx.fine`` only, not on the image: registrations of one labelling on two
-    conversions of the image (the polarities) share it."""
-    return fine_search(ctx.geometry, fit.pose, fit.points_lps_mm, fit.uv_px, ctx.fine, should_stop=ctx.should_stop)
+def landmark_fit(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray | None = None, pinned: tuple = ()
+                 ) -> FineResult:
+    """The anchored landmark fit (Algorithm 4) of a planned labelling, from its depth pose (or ``start_pose``, with
+    the pose parameters ``pinned`` held there: ``fine_search``). It depends on the clicks, the labels, the geometry
+    and ``ctx.fine`` only, not on the image: registrations of one labelling on two conversions of the image (the
+    polarities) share it."""
+    start = fit.pose if start_pose is None else start_pose
+    return fine_search(ctx.geometry, start, fit.points_lps_mm, fit.uv_px, ctx.fine, ctx.should_stop, pinned)
 
 
 def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_rejoined: bool = False,
@@ -191,14 +194,14 @@ def refit_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, stop_
 def nominal_depth_start(ctx: FitContext, fit: LabellingFit) -> np.ndarray:
     """(6,) the clicks' landmark fit with the source at the nominal depth: the anchored fine search (Algorithm 4)
     from the labelling's landmark pose moved to tx = 0 and re-centred on the clicks (``depth.recenter_pose``), tx
-    held there (``fine_search(pinned=(0,))``). The depth search reads the magnification from the clicks' spacing,
+    held there (``landmark_fit(pinned=(0,))``). The depth search reads the magnification from the clicks' spacing,
     which a view tilted against the spine's curvature foreshortens: three upper thoracic clicks under a view turned
     9 deg put the source 130 mm too far (chest scene 317), beyond the image refinement's reach (+-80 mm). At the
     nominal depth (the anatomy at the isocentre, where the radiographer centres it) the clicks ask for the tilt
     instead, and the image refinement from there found the true pose."""
     start = fit.pose if fit.fine is None else np.asarray(fit.fine.pose, float)
     start = recenter_pose(ctx.geometry, np.array([0.0, *start[1:]]), fit.points_lps_mm, fit.uv_px)
-    return fine_search(ctx.geometry, start, fit.points_lps_mm, fit.uv_px, ctx.fine, ctx.should_stop, pinned=(0,)).pose
+    return landmark_fit(ctx, fit, start, pinned=(0,)).pose
 
 
 def refit_at_nominal_depth(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
