@@ -108,6 +108,19 @@ taken only when it is clear and the mirror then leads the stored image under tha
 then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the record. No threshold
 of its own: the verdict's are the two at the clicks.
 
+A display and its polarity are found together (stop 54). A clear polarity at the clicks that only just cleared its lead
+(by less than ``CHECKED_CLICKS_GC``, not confirmed by a clear second opinion without the shading; the file not stating
+it, the user not setting it) on a display judged as stored can still be the wrong polarity on a mirrored display: as
+stored, neither polarity shows an aligned spine, and the wrong one can lead by chance and then find the display as
+stored. So the orientation is judged at the clicks under the other polarity too (``REFINED_WITH_ORIENTATION``,
+``appearance_checks._orientation_under_other_polarity``: the mirror and every orientation its database scores do not
+rule out, the polarity check's registrations under it). When a rival orientation there keeps the clicks fitted and leads
+the stored image's GC under the polarity taken by ``REFUSE_ORIENTATION_AT_CLICKS_GC``, the image is that polarity
+displayed so (``Appearance.displayed_otherwise``): refused, no level answer confident. Seen: stop 53's unseen chest
+scene 353, a mirrored bone-dark intensifier PNG, names one level off: bone bright taken at the clicks by 0.115, the
+display then clear as stored (0.348, the mirror 0.250 without the clicks fitted); as bone dark the mirror reaches 0.865
+with the clicks fitted. No threshold of its own.
+
 Without clicks the same holds (stop 28): a mirrored display the database did not refuse left the image-alone polarity
 unclear, often for the wrong polarity (the appearance benchmark's report halves: 5 of the 7 such runs recorded at stops
 21 and 27). So when the polarity found without clicks is unclear and the orientation not clearly as stored (the user did
@@ -173,6 +186,7 @@ WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
 REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"
 REFINED_ON_MIRROR_WITHOUT_SHADING = f"{REFINED_ON_MIRROR}, without the shading above {WITHOUT_SHADING_MM:g} mm"
+REFINED_WITH_ORIENTATION = f"{REFINED_AT_CLICKS}, with the display's orientation judged under both polarities"
 AT_CLICKS = (REFINED_AT_CLICKS, REFINED_ON_MIRROR, REFINED_AT_CLICKS_WITHOUT_SHADING, REFINED_ON_MIRROR_WITHOUT_SHADING)
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
@@ -283,6 +297,22 @@ class Appearance:
                               "clicks explained the image poorly; not clear"))
         other.set_orientation(orientation_scores)
         return other
+
+    def displayed_otherwise(self, first: Appearance, evidence: dict, orientation: str, taken_gc: float) -> None:
+        """This appearance (``first.other_polarity``) taken because, at the clicks' poses, the image turned by
+        ``orientation`` agrees with the CT under this polarity (``evidence``: ``click_orientation`` under it) by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as stored did under ``first``'s polarity
+        (``taken_gc``; module docstring, ``REFINED_WITH_ORIENTATION``): this polarity, displayed ``orientation``, the
+        image refused (never trusted, the polarity not called clear on its own)."""
+        self.orientation_at_clicks = dict(evidence)
+        self.orientation_decided_by = f"image ({REFINED_WITH_ORIENTATION})"
+        self.orientation, self.orientation_clear = orientation, False
+        self.decided_by, self.image_polarity, self.clear = f"image ({REFINED_WITH_ORIENTATION})", self.polarity, False
+        shown = orientation.replace("-", " ")
+        self.note = (f"{self.polarity}, displayed {shown}: at the clicks' poses the image {shown} as {self.polarity} "
+                     f"agrees with the CT at GC {evidence['scores'][orientation]:.3f}, the image as stored as "
+                     f"{first.polarity} (taken first, by a lead of {first.clarity_gc:.3f}) only at {taken_gc:.3f}: "
+                     "the polarity and the display were found together, neither clear on its own")
 
     def set_storage(self, gc_by_storage: dict, stated: str | None = None) -> None:
         """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the one the file

@@ -12,7 +12,8 @@ lead) and the user did not set the polarity:
 4. with clicks, a second opinion without the image's shading (``_polarity_at_clicks_without_shading``; asked of a
    clear verdict by less than ``CHECKED_CLICKS_GC`` too), then the
    image mirrored left-right (``_polarity_on_mirror``; without the shading too when the second opinion is clear):
-   a mirrored display is refused;
+   a mirrored display is refused; then a clear verdict the second opinion did not confirm has the display judged
+   under the other polarity too (``_orientation_under_other_polarity``);
 5. without clicks, the image mirrored left-right (``_polarity_on_mirror_without_clicks``; a mirrored display is
    refused), then a second opinion without the image's shading (``_polarity_without_shading``);
 6. the warnings on the appearance.
@@ -65,6 +66,7 @@ from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
     close_call,
+    displayed_under_other_polarity,
     orientation_at_clicks,
     oriented_context,
     rival_orientations,
@@ -176,6 +178,7 @@ class AppearanceChecks:
         self._orientation_at_clicks(state, "spatial")
         unshaded = self._polarity_at_clicks_without_shading(state, gc_by_storage)
         self._polarity_on_mirror(state, gc_by_storage, unshaded)
+        self._orientation_under_other_polarity(state, gc_by_storage, unshaded)
         self._polarity_on_mirror_without_clicks(state, gc_by_storage)
         self._polarity_without_shading(state, gc_by_storage)
         self._appearance_warnings(state)
@@ -250,6 +253,44 @@ class AppearanceChecks:
                                                               p.identify.rule).as_dict())
         if again.orientation == MIRROR:
             self._use_appearance(state, again, gc_by_storage)
+
+    def _orientation_under_other_polarity(self, state: RegistrationState, gc_by_storage: dict,
+                                          unshaded: ClickPolarity | None) -> None:
+        """With clicks, a polarity taken from the image clearly at them but by less than ``CHECKED_CLICKS_GC`` and
+        not confirmed by a clear second opinion (``unshaded`` None; the file not stating a polarity, the user not
+        setting it), on a display judged as stored at the clicks: the orientation judged at the clicks under the other
+        polarity too (``click_orientation.orientation_at_clicks`` on the polarity check's registrations under it, the
+        mirror and every orientation that polarity's database scores do not rule out). With g_taken the stored
+        image's GC under the polarity taken and g'(o) orientation o's under the other, when the best rival o keeps
+        the clicks fitted and
+
+            g'(o) - g_taken >= REFUSE_ORIENTATION_AT_CLICKS_GC      (``displayed_under_other_polarity``)
+
+        the image is the other polarity displayed o (``Appearance.displayed_otherwise``): refused, no level answer
+        confident (``image.appearance``'s module docstring, stop 54). Otherwise the appearance stays. Either way
+        ``scores["other_polarity_at_clicks"]`` records the evidence. No threshold of its own."""
+        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        if (cp is None or unshaded is not None or not a.clear or _settled(state, CHECKED_CLICKS_GC)
+                or p.polarity in POLARITIES or a.orientation != "as-stored" or a.orientation_at_clicks is None):
+            return
+        other = next(k for k in POLARITIES if k != a.polarity)
+        dark = other == "bone-dark"
+        storage = cp.dark_storage if dark else "log-display"
+        scores = orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor, dark)
+        base = self._context(state, self._polarity_image(state, other, cp.dark_storage))
+        contexts = {o: oriented_context(base, o) for o in rival_orientations(scores)}
+        self._report("spatial", 0.97, f"judging the display's orientation at the clicks as {other} too")
+        evidence = orientation_at_clicks(contexts, list(cp.registered[other]), xray.size_px, p.identify.rule,
+                                         names_follow_clicks=state.xray_landmarks.named,
+                                         memo=state.turned_fits.setdefault((other, storage), {}))
+        a.scores["other_polarity_at_clicks"] = record = evidence.as_dict()
+        taken = float(a.orientation_at_clicks["scores"]["as-stored"])
+        shown = displayed_under_other_polarity(evidence, taken)
+        if shown is None:
+            return
+        again = a.other_polarity(cp.dark_storage, scores)
+        again.displayed_otherwise(a, record, shown, taken)
+        self._use_appearance(state, again, gc_by_storage)
 
     @staticmethod
     def _on_mirror(ctx: FitContext, without_shading: bool) -> FitContext:

@@ -1,6 +1,6 @@
 """The display's orientation judged where the clicks put the CT (``click_orientation``): the geometry of a turned
-image first, then the rule, then a realistic case shown as acquired and shown upside down, and a mirrored display
-whose polarity only the mirror tells."""
+image first, then the rule, then a realistic case shown as acquired and shown upside down, a mirrored display
+whose polarity only the mirror tells, and one the wrong polarity takes as stored."""
 
 import sys
 from pathlib import Path
@@ -18,18 +18,22 @@ from carmreg.logic.image.appearance import (
     CLOSE_ORIENTATION_AT_CLICKS_GC,
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_CLICKS,
+    REFINED_WITH_ORIENTATION,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     REFUSE_ORIENTATION_GC,
     decide_polarity,
     verdict_at_clicks,
 )
+from carmreg.logic.image.prepare import attenuation
 from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_clicks
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration.appearance_checks import AppearanceChecks
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
+    ClickOrientation,
     close_call,
+    displayed_under_other_polarity,
     orientation_at_clicks,
     oriented_context,
     oriented_geometry,
@@ -349,3 +353,66 @@ def test_a_close_call_is_a_lead_either_way_under_the_limit_among_fittable_rivals
     assert not close_call({"as-stored": 0.60, MIRROR: 0.60 - CLOSE_ORIENTATION_AT_CLICKS_GC})
     assert not close_call({"as-stored": 0.30, MIRROR: 0.30 + CLOSE_ORIENTATION_AT_CLICKS_GC + 0.001})
     assert not close_call({"as-stored": 0.40, MIRROR: float("nan"), "turned-90": None})
+
+
+def test_a_display_is_taken_from_the_other_polarity_only_by_a_fitted_rival_leading_the_taken_gc_clearly():
+    """``displayed_under_other_polarity``, each part deciding: a fitted rival leading the stored image's GC under the
+    polarity taken by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` is the display (stop 53's case 353: the mirror as bone dark
+    0.865, the stored image as bone bright 0.348); a lead just under it, an unfitted rival or one the clicks could
+    not be fitted on (nan) is not; the stored image's own GC under the other polarity never counts."""
+    def judged(scores: dict, fitted: dict) -> ClickOrientation:
+        return ClickOrientation([["T8", "T9", "T10"]], scores, {o: 2.0 for o in scores}, fitted)
+
+    fitted = {"as-stored": True, MIRROR: True, "turned-270": False}
+    case353 = judged({"as-stored": 0.233, MIRROR: 0.865, "turned-270": float("nan")}, fitted)
+    assert displayed_under_other_polarity(case353, 0.348) == MIRROR
+    just_under = judged({"as-stored": 0.233, MIRROR: 0.348 + REFUSE_ORIENTATION_AT_CLICKS_GC - 0.001}, fitted)
+    assert displayed_under_other_polarity(just_under, 0.348) is None
+    assert displayed_under_other_polarity(judged({"as-stored": 0.2, MIRROR: 0.9}, {**fitted, MIRROR: False}),
+                                          0.348) is None
+    assert displayed_under_other_polarity(judged({"as-stored": 0.9, MIRROR: float("nan")}, fitted), 0.348) is None
+
+
+@pytest.fixture(scope="module")
+def mirrored_names_one_level_off(tmp_path_factory, drr_cache_dir):
+    """Stop 53's unseen appearance-benchmark scene 353 (chest CT, the independent simulator): an intensifier image
+    shown mirrored left-right, bone dark, 16-bit PNG, T9-T11 clicked and named one level off (T8-T10). As stored, bone
+    bright leads at the clicks by 0.115 (clear) and finds the display as stored clearly; as bone dark the mirror
+    reaches GC 0.86 with the clicks fitted."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
+    import appearance as app
+    import bench_appearance as bench
+
+    maker = bench.CaseMaker(second_ct=False)
+    variant = app.VARIANTS["ii-dark-mirrored-png"]
+    record = bench.write_variant(maker.scenes(353, {variant.detector})[variant.detector], variant, 353,
+                                 tmp_path_factory.mktemp("mirrored-353"))
+    detector = app.DETECTORS[variant.detector]
+    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
+    (ct, _, centroids), _, _ = maker.cts["chest"]
+    assert record["truth"]["clicked"] == ["T9", "T10", "T11"]
+    clicks = Landmarks2D(["T8", "T9", "T10"], np.asarray(record["truth"]["clicks_uv_px"], float))
+    return ct, centroids, xray, clicks, RegistrationParameters(cache_dir=drr_cache_dir)
+
+
+@pytest.mark.slow
+def test_a_mirrored_display_taken_as_stored_under_the_wrong_polarity_is_found_under_the_other(
+        mirrored_names_one_level_off):
+    """The first verdict at the clicks is clear for the wrong polarity by less than ``CHECKED_CLICKS_GC`` and the
+    second opinion without the shading does not confirm it; under it the display looks as stored. Judged under the
+    other polarity too, the mirror leads the stored image's GC by far more than ``REFUSE_ORIENTATION_AT_CLICKS_GC``
+    with the clicks fitted: the image is taken bone dark and mirrored, refused, so no level answer can be
+    confident (stop 53 named it one level off, ambiguous only by its margin)."""
+    ct, centroids, xray, clicks, params = mirrored_names_one_level_off
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, clicks, params)
+    logic.run_through(state, "spatial")
+    a = state.appearance
+    first = a.scores["at_clicks"]["scores"]
+    assert first["bone-bright"] - first["bone-dark"] >= 0.10  # the first verdict: bone bright, clearly
+    other = a.scores["other_polarity_at_clicks"]
+    assert other["fitted"][MIRROR] and other["scores"][MIRROR] >= first["bone-bright"] + 0.3
+    assert (a.polarity, a.orientation, a.clear, a.trusted) == ("bone-dark", MIRROR, False, False)
+    assert a.decided_by == f"image ({REFINED_WITH_ORIENTATION})"
+    assert np.allclose(state.xray_line_integral, attenuation(xray.pixels, state.mask, True, a.storage))
+    assert "displayed mirrored left right" in a.note
