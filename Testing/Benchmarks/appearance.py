@@ -212,10 +212,13 @@ def split_mu(hu: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     return water, bone, MU_WATER_PER_MM * (1.0 + SOFT_TISSUE_HU / 1000.0), 0.0
 
 
-def draw_pose_and_motion(rng: np.random.Generator, ct, labels, centroids: Landmarks3D):
+def draw_pose_and_motion(rng: np.random.Generator, ct, labels, centroids: Landmarks3D,
+                         depth_range_mm: float = SimulationOptions.depth_range_mm):
     """(pose on the intensifier geometry, per-level motions): bench_levels' draws (+-2 levels of an inner level,
-    +-20 mm lateral, +-50 mm depth, +-10 deg; 2 deg / 1 mm rms per level)."""
-    options = SimulationOptions()
+    +-20 mm lateral, +-``depth_range_mm`` depth about the nominal isocentre (50 mm), +-10 deg; 2 deg / 1 mm rms per
+    level). The depth is U(-1, 1) * ``depth_range_mm`` from the same random stream: another range draws the same
+    scene with its source nearer or farther."""
+    options = SimulationOptions(depth_range_mm=depth_range_mm)
     names = centroids.sorted().labels
     inner = names[2:-2] if len(names) > 5 else names[1:-1]
     geometry = make_geometry(ct, DETECTORS["ii"])

@@ -57,6 +57,7 @@ from carmreg.logic.registration.pipeline import CarmRegLogic  # noqa: E402
 from carmreg.logic.registration.state import RegistrationParameters  # noqa: E402
 from carmreg.logic.resources import sample_case  # noqa: E402
 from carmreg.logic.simulation.evaluation import evaluate  # noqa: E402
+from carmreg.logic.simulation.options import SimulationOptions  # noqa: E402
 
 MODES = ("unnamed", "named", "wrong", "none")
 STATUSES = ("confident", "ambiguous", "contradicted", "proposed")
@@ -74,8 +75,10 @@ class CaseMaker:
 
     KEPT_CASES = 4
 
-    def __init__(self, second_ct: bool = True):
-        """``second_ct`` False: the chest CT only (a test that needs no ../shared)."""
+    def __init__(self, second_ct: bool = True, depth_range_mm: float = SimulationOptions.depth_range_mm):
+        """``second_ct`` False: the chest CT only (a test that needs no ../shared); ``depth_range_mm``: the source's
+        depth drawn within this of the nominal (``app.draw_pose_and_motion``)."""
+        self.depth_range_mm = depth_range_mm
         sample = sample_case()
         self.cts = {"chest": (load_case(), Path(sample["ct"]), Path(sample["ct_landmarks"]))}
         self.parts = {}
@@ -116,7 +119,7 @@ class CaseMaker:
             self.parts[name] = app.split_mu(ct.hu)
         rng = np.random.default_rng(7000 + case)
         for _ in range(20):
-            pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids)
+            pose, motions = app.draw_pose_and_motion(rng, ct, labels, centroids, self.depth_range_mm)
             try:
                 return {d: app.plan_scene(name, centroids, pose, motions, app.DETECTORS[d],
                                           app.make_geometry(ct, app.DETECTORS[d]), rng) for d in sorted(app.DETECTORS)}
@@ -601,6 +604,9 @@ def main(argv=None) -> int:
     parser.add_argument("--turn-mirrored", action="store_true",
                         help="register the mirrored displays turned back (--orient-xray mirrored-left-right), as "
                         "the refusal tells a user to")
+    parser.add_argument("--depth-range-mm", type=float, default=SimulationOptions.depth_range_mm,
+                        help="draw the source's depth within this of the nominal (the same scenes, nearer or "
+                        "farther; the default is the benchmark's)")
     parser.add_argument("--summary-only", action="store_true", help="rewrite the tables from the JSON")
     parser.add_argument("--rescore", action="store_true",
                         help="with --summary-only: score the runs again from the result.json files under --work")
@@ -627,7 +633,7 @@ def main(argv=None) -> int:
         print(summarize(rows, "report"))
         return 0
     done = {(r["case"], r["variant"], r["mode"]) for r in rows}
-    maker = CaseMaker()
+    maker = CaseMaker(depth_range_mm=args.depth_range_mm)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for case in range(args.first, args.first + args.cases):
             if (args.half != "all" and half(case) != args.half) or (
