@@ -273,24 +273,20 @@ class AppearanceChecks:
         if (cp is None or unshaded is not None or not a.clear or _settled(state, CHECKED_CLICKS_GC)
                 or p.polarity in POLARITIES or a.orientation != "as-stored" or a.orientation_at_clicks is None):
             return
-        other = next(k for k in POLARITIES if k != a.polarity)
-        dark = other == "bone-dark"
-        storage = cp.dark_storage if dark else "log-display"
-        scores = orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor, dark)
-        base = self._context(state, self._polarity_image(state, other, cp.dark_storage))
+        scores = orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor, not a.bone_dark)
+        other = a.other_polarity(cp.dark_storage, scores)
+        base = self._context(state, self._polarity_image(state, other.polarity, cp.dark_storage))
         contexts = {o: oriented_context(base, o) for o in rival_orientations(scores)}
-        self._report("spatial", 0.97, f"judging the display's orientation at the clicks as {other} too")
-        evidence = orientation_at_clicks(contexts, list(cp.registered[other]), xray.size_px, p.identify.rule,
-                                         names_follow_clicks=state.xray_landmarks.named,
-                                         memo=state.turned_fits.setdefault((other, storage), {}))
-        a.scores["other_polarity_at_clicks"] = record = evidence.as_dict()
+        self._report("spatial", 0.97, f"judging the display's orientation at the clicks as {other.polarity} too")
+        evidence = orientation_at_clicks(contexts, list(cp.registered[other.polarity]), xray.size_px,
+                                         p.identify.rule, names_follow_clicks=state.xray_landmarks.named,
+                                         memo=state.turned_fits.setdefault((other.polarity, other.storage), {}))
+        a.scores["other_polarity_at_clicks"] = other.scores["other_polarity_at_clicks"] = record = evidence.as_dict()
         taken = float(a.orientation_at_clicks["scores"]["as-stored"])
         shown = displayed_under_other_polarity(evidence, taken)
-        if shown is None:
-            return
-        again = a.other_polarity(cp.dark_storage, scores)
-        again.displayed_otherwise(a, record, shown, taken)
-        self._use_appearance(state, again, gc_by_storage)
+        if shown is not None:
+            other.displayed_otherwise(a, record, shown, taken)
+            self._use_appearance(state, other, gc_by_storage)
 
     @staticmethod
     def _on_mirror(ctx: FitContext, without_shading: bool) -> FitContext:
