@@ -182,19 +182,26 @@ def mirrored_display(tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's tune case 0 (chest CT, its independent simulator), an intensifier image shown
     mirrored left-right, bone dark, 16-bit PNG: (CT, its centroids, X-ray, the three clicks' (u, v) px, parameters
     with the session's DRR cache)."""
+    ct, centroids, xray, truth = _mirrored_chest_scene(0, tmp_path_factory.mktemp("mirrored-case"))
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
+    return ct, centroids, xray, np.asarray(truth["clicks_uv_px"], float), params
+
+
+def _mirrored_chest_scene(case: int, folder: Path):
+    """(CT, its centroids, X-ray, truth): the appearance benchmark's scene ``case`` drawn on the chest CT (no
+    ../shared needed) as the intensifier image shown mirrored left-right, bone dark, 16-bit PNG, written to
+    ``folder`` and read as ``carmreg register`` reads it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=False)
     variant = app.VARIANTS["ii-dark-mirrored-png"]
-    record = bench.write_variant(maker.scenes(0, {variant.detector})[variant.detector], variant, 0,
-                                 tmp_path_factory.mktemp("mirrored-case"))
+    record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case, folder)
     detector = app.DETECTORS[variant.detector]
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
     (ct, _, centroids), _, _ = maker.cts["chest"]
-    params = RegistrationParameters(cache_dir=drr_cache_dir)
-    return ct, centroids, xray, np.asarray(record["truth"]["clicks_uv_px"], float), params
+    return ct, centroids, xray, record["truth"]
 
 
 def _appearance_found(mirrored_display, clicks: Landmarks2D):
@@ -379,19 +386,9 @@ def mirrored_names_one_level_off(tmp_path_factory, drr_cache_dir):
     shown mirrored left-right, bone dark, 16-bit PNG, T9-T11 clicked and named one level off (T8-T10). As stored, bone
     bright leads at the clicks by 0.115 (clear) and finds the display as stored clearly; as bone dark the mirror
     reaches GC 0.86 with the clicks fitted."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
-    import appearance as app
-    import bench_appearance as bench
-
-    maker = bench.CaseMaker(second_ct=False)
-    variant = app.VARIANTS["ii-dark-mirrored-png"]
-    record = bench.write_variant(maker.scenes(353, {variant.detector})[variant.detector], variant, 353,
-                                 tmp_path_factory.mktemp("mirrored-353"))
-    detector = app.DETECTORS[variant.detector]
-    xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
-    (ct, _, centroids), _, _ = maker.cts["chest"]
-    assert record["truth"]["clicked"] == ["T9", "T10", "T11"]
-    clicks = Landmarks2D(["T8", "T9", "T10"], np.asarray(record["truth"]["clicks_uv_px"], float))
+    ct, centroids, xray, truth = _mirrored_chest_scene(353, tmp_path_factory.mktemp("mirrored-353"))
+    assert truth["clicked"] == ["T9", "T10", "T11"]
+    clicks = Landmarks2D(["T8", "T9", "T10"], np.asarray(truth["clicks_uv_px"], float))
     return ct, centroids, xray, clicks, RegistrationParameters(cache_dir=drr_cache_dir)
 
 
