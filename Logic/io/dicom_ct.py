@@ -11,9 +11,9 @@ import numpy as np
 from carmreg.logic.errors import InputFileError, describe
 from carmreg.logic.geometry.volume import Volume
 from carmreg.logic.io.dicom_common import (
-    DICOM_PARSE_ERRORS,
     dicom_int,
     dicom_numbers,
+    dicom_parse_errors,
     drop_unreadable_elements,
     has_dicom_marker,
 )
@@ -81,7 +81,7 @@ def _read_header(path: Path, pydicom):
         ds = pydicom.dcmread(path, stop_before_pixels=True)
     except InvalidDicomError:
         ds = None
-    except DICOM_PARSE_ERRORS as exc:
+    except dicom_parse_errors() as exc:
         if has_dicom_marker(path):
             raise InputFileError(f"{path}: damaged DICOM file ({describe(exc, 80)}); "
                                  "copy it again or remove it from the folder") from None

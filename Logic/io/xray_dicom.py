@@ -10,9 +10,9 @@ import numpy as np
 
 from carmreg.logic.errors import InputFileError, describe
 from carmreg.logic.io.dicom_common import (
-    DICOM_PARSE_ERRORS,
     dicom_int,
     dicom_numbers,
+    dicom_parse_errors,
     drop_unreadable_elements,
 )
 from carmreg.logic.io.limits import check_dicom_size
@@ -95,7 +95,7 @@ def _dcmread(path: Path):
             check_dicom_size(path, dicom_int(head, "Rows", 0, path), dicom_int(head, "Columns", 0, path), frames,
                              per_pixel)
         ds = pydicom.dcmread(path, force=True)
-    except DICOM_PARSE_ERRORS as exc:
+    except dicom_parse_errors() as exc:
         raise InputFileError(f"{path}: not a readable DICOM file ({describe(exc, 100)})") from None
     return ds
 
