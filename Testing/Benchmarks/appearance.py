@@ -28,8 +28,9 @@ Frames and units: world = CT LPS mm; detector pixels (u, v) = (column, row), 0-b
    same stored with MONOCHROME1 or inverted), ``log`` (attenuation ``-ln(D / D_ref)`` windowed on the field's
    0.5-99.5 percentiles: bone bright; bone dark is its complement), ``display`` (log, dynamic-range
    compression, unsharp mask, window, gamma; 8-bit JPEG). ``bone_bright`` says the polarity *as displayed*.
-5. **Display flip** (``mirrored``): the stored image is flipped left-right (C-arm display setting); the truth
-   follows (u -> columns - 1 - u).
+5. **Display flip and turn** (``mirrored``, ``display_turn``; C-arm display settings): the stored image is flipped
+   left-right, then turned (``DISPLAY_TURNS``: by 180 degrees, flipped up-down, or a quarter turn counter-clockwise,
+   which swaps columns and rows); the truth follows through the same pixel map (``display_map``).
 6. Burnt-in corner text (not in the field on the intensifier; at the detector corners on the flat panel).
 """
 
@@ -106,6 +107,7 @@ class Look:
     mirrored: bool = False
     file: str = "png16"             # png16 | tiff16 | jpeg8 | dcm-sign | dcm-nosign | dcm-mono1
     modality: str = "XA"
+    display_turn: str = "none"      # a key of DISPLAY_TURNS, after the mirror
 
     @property
     def bone_factor(self) -> float:
@@ -151,7 +153,21 @@ VARIANTS = {v.name: v for v in (
     Variant("ii-dark-mirrored-png", "ii", {"storage": "log", "bone_bright": False, "file": "png16",
                                           "mirrored": True},
             note="intensifier, display flipped left-right, log, bone dark, 16-bit PNG"),
+    Variant("ii-dark-turned180-png", "ii", {"storage": "log", "bone_bright": False, "file": "png16",
+                                           "display_turn": "turned-180"},
+            note="intensifier, display turned 180 degrees (head at the bottom), log, bone dark, 16-bit PNG"),
+    Variant("fp-bright-flipped-tiff", "fp", {"storage": "log", "bone_bright": True, "file": "tiff16",
+                                            "display_turn": "flipped-up-down"},
+            note="flat panel, display flipped up-down, log, bone bright, 16-bit TIFF"),
+    Variant("fp-dark-turned90-jpeg", "fp", {"storage": "display", "bone_bright": False, "file": "jpeg8",
+                                           "display_turn": "turned-90"},
+            note="flat panel, display turned a quarter counter-clockwise (the spine across the image), processed "
+                 "display, bone dark, 8-bit JPEG"),
 )}
+
+DISPLAY_TURNS = ("none", "turned-180", "flipped-up-down", "turned-90")
+"""How a display may be turned after its mirror (``Look.display_turn``): not, by 180 degrees, flipped up-down, or a
+quarter turn counter-clockwise (the stored image's first row then holds the acquisition's last column)."""
 
 
 def base_look(rng: np.random.Generator, detector: Detector) -> Look:
@@ -383,28 +399,51 @@ def make_scene(ct_name: str, ct, labels, centroids: Landmarks3D, mu_parts, pose:
     return render_scene(plan, ct, labels, mu_parts)
 
 
-def truth_dict(scene: Scene, mirrored: bool) -> dict:
+def truth_dict(scene: Scene, mirrored: bool, display_turn: str = "none") -> dict:
     """Ground truth in the form ``carmreg.logic.simulation.evaluation.evaluate`` reads (projection_matrix,
-    intrinsics.pixel_spacing_mm, levels[uv_true_px, visible]); mirrored: u -> cols - 1 - u everywhere (the
-    'true' P then maps to where each level shows on the flipped display)."""
-    cols = scene.detector.size_px[0]
-    flip = np.array([[-1.0, 0.0, cols - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) if mirrored else np.eye(3)
-    P = flip @ scene.projection_matrix
-    levels = {lb: {"uv_true_px": mirror_uv(uv, cols, mirrored).tolist(), "visible": scene.visible[lb]}
+    intrinsics.pixel_spacing_mm and size_px, levels[uv_true_px, visible]) on the display: every acquired pixel
+    position taken through ``display_map`` (the 'true' P then maps to where each level shows on the display)."""
+    F, size_px = display_map(scene.detector.size_px, mirrored, display_turn)
+    P = F @ scene.projection_matrix
+    levels = {lb: {"uv_true_px": displayed_uv(uv, F).tolist(), "visible": scene.visible[lb]}
               for lb, uv in scene.uv_true_px.items()}
     return {"projection_matrix": P.tolist(), "pose": scene.pose.as_dict(), "mirrored": mirrored,
+            "display_turn": display_turn,
             "intrinsics": {"sdd_mm": scene.detector.sdd_mm, "pixel_spacing_mm": [scene.detector.pixel_mm] * 2,
-                           "size_px": list(scene.detector.size_px)},
+                           "size_px": list(size_px)},
             "sod_mm": scene.detector.sod_mm, "levels": levels, "clicked": scene.clicked,
-            "clicks_uv_px": [mirror_uv(uv, cols, mirrored).tolist() for uv in scene.clicks_uv_px],
+            "clicks_uv_px": [displayed_uv(uv, F).tolist() for uv in scene.clicks_uv_px],
             "distortion": scene.distortion}
 
 
-def mirror_uv(uv, cols: int, mirrored: bool) -> np.ndarray:
+def display_map(size_px: tuple[int, int], mirrored: bool, display_turn: str = "none"
+                ) -> tuple[np.ndarray, tuple[int, int]]:
+    """(F, displayed (columns, rows)): the 3 x 3 map of an acquired pixel (u, v, 1) (0-based centres, (column,
+    row)) to where the display shows it, the mirror (u -> cols - 1 - u) first, then ``display_turn``."""
+    cols, rows = size_px
+    mirror = np.array([[-1.0, 0.0, cols - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) if mirrored else np.eye(3)
+    turns = {"none": (np.eye(3), (cols, rows)),
+             "turned-180": (np.array([[-1.0, 0.0, cols - 1.0], [0.0, -1.0, rows - 1.0], [0.0, 0.0, 1.0]]),
+                            (cols, rows)),
+             "flipped-up-down": (np.array([[1.0, 0.0, 0.0], [0.0, -1.0, rows - 1.0], [0.0, 0.0, 1.0]]), (cols, rows)),
+             # a quarter turn counter-clockwise: displayed column = acquired row, displayed row = cols - 1 - u
+             "turned-90": (np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, cols - 1.0], [0.0, 0.0, 1.0]]), (rows, cols))}
+    turn, shown = turns[display_turn]
+    return turn @ mirror, shown
+
+
+def displayed_uv(uv, F: np.ndarray) -> np.ndarray:
+    """Acquired pixel positions (..., 2) where the display shows them (``display_map``'s F)."""
     uv = np.array(uv, float)
-    if mirrored:
-        uv[..., 0] = cols - 1.0 - uv[..., 0]
-    return uv
+    h = np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1) @ F.T
+    return h[..., :2]
+
+
+def turn_display(pixels: np.ndarray, display_turn: str) -> np.ndarray:
+    """The stored image (rows, columns) turned as ``display_turn`` says (``display_map``'s pixel map)."""
+    turned = {"none": pixels, "turned-180": pixels[::-1, ::-1], "flipped-up-down": pixels[::-1],
+              "turned-90": pixels.T[::-1]}[display_turn]  # turned-90: shown[cols - 1 - u, v] = acquired[v, u]
+    return np.ascontiguousarray(turned)
 
 
 # ----------------------------------------------------------------------------------------------- appearance
@@ -515,11 +554,12 @@ def burn_text(pixels: np.ndarray, lines: list[str]) -> np.ndarray:
 
 
 def render(scene: Scene, look: Look, rng: np.random.Generator) -> np.ndarray:
-    """The stored image of ``scene`` with ``look`` (uint16 or uint8, mirrored if asked, text burnt in)."""
+    """The stored image of ``scene`` with ``look`` (uint16 or uint8, mirrored and turned if asked, text burnt in)."""
     quanta = detect(scene.l_water, scene.l_bone, scene.field, scene.detector, look, rng)
     pixels = store(quanta, scene.field, scene.detector, look)
     if look.mirrored:
         pixels = np.ascontiguousarray(pixels[:, ::-1])
+    pixels = turn_display(pixels, look.display_turn)
     return burn_text(pixels, ["ACME MOBILE C" if scene.detector.kind == "ii" else "FP-30 DIGITAL",
                               f"{look.kv:.0f} kV", "IMG 0001", "SPINE AP"])
 

@@ -151,7 +151,7 @@ def write_variant(scene: app.Scene, variant: app.Variant, case: int, folder: Pat
     look = app.variant_look(base, variant, rng)
     pixels = app.render(scene, look, rng)
     xray = app.write_xray(folder / "xray", pixels, scene.detector, look)
-    truth = app.truth_dict(scene, look.mirrored)
+    truth = app.truth_dict(scene, look.mirrored, look.display_turn)
     truth["look"] = dataclasses.asdict(look)
     truth["bone_bright_displayed"] = look.bone_bright
     atomic_write_json(folder / "truth.json", truth)
@@ -387,6 +387,13 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         lines += ["", f"Mirrored display: {sum(r['status'] == 'confident' for r in flipped)} of {len(flipped)} "
                   "runs CONFIDENT (issue 11: a flipped image is detected and registered, or refused; never named "
                   "with confidence)."]
+    for turn in app.DISPLAY_TURNS[1:]:
+        runs = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("display_turn") == turn]
+        if runs:
+            wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in runs)
+            lines += ["", f"Display {turn}: {sum(r['status'] == 'confident' for r in runs)} of {len(runs)} runs "
+                      f"CONFIDENT, {wrong} CONFIDENT (no clicks: proposed) and wrong; refused as a display turned "
+                      f"(no level named): {sum(_refused_display(r) for r in runs)}."]
     turned = [r for r in sel if r.get("turned")]
     if turned:
         wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in turned)
@@ -412,6 +419,19 @@ def summarize(rows: list[dict], which: str = "report") -> str:
     return "\n".join(lines) + "\n"
 
 
+def shown_as_acquired(variant_name: str) -> bool:
+    """Whether the variant's display is neither mirrored nor turned (``appearance.display_map``): a display that is
+    is never to be named as stored, so the issue's targets but the first two leave it out."""
+    changes = app.VARIANTS[variant_name].changes
+    return not changes.get("mirrored") and changes.get("display_turn", "none") == "none"
+
+
+def _refused_display(row: dict) -> bool:
+    """Whether the run's X-ray was refused for its display: matched best mirrored or turned (result.json
+    ``appearance.orientation``, ``outcome.refused_display``)."""
+    return (row.get("appearance") or {}).get("orientation", "as-stored") != "as-stored"
+
+
 def _unfitted(runs: list[dict]) -> np.ndarray:
     """Levels not clicked, pose-PDE found vs true pose (detector mm), of the runs with clicks (unnamed, named)."""
     return np.concatenate([r["unfitted_pde_mm"] for r in runs if r["mode"] in ("unnamed", "named")
@@ -422,7 +442,7 @@ def _targets(sel: list[dict]) -> list[str]:
     """The issue's targets on these runs, in its own terms: every variant for confident wrong answers; the correctly
     displayed variants (a mirrored display is never to be named) for the rest; levels not clicked split by the
     image's polarity and by detector."""
-    shown = [r for r in sel if not app.VARIANTS[r["variant"]].changes.get("mirrored")]
+    shown = [r for r in sel if shown_as_acquired(r["variant"])]
     named = [r for r in shown if r["mode"] == "named"]
     unnamed = [r for r in shown if r["mode"] == "unnamed"]
     off = [r for r in sel if r["mode"] == "wrong"]
@@ -432,7 +452,8 @@ def _targets(sel: list[dict]) -> list[str]:
     def levels(keep) -> str:
         vals = _unfitted([r for r in shown if keep(r["variant"])])
         return f"{np.median(vals):.2f} / {_pct(vals, 95)} mm ({len(vals)})" if len(vals) else "-"
-    return ["", "The issue's targets on these runs (mirrored displays left out of all but the first two):", "",
+    return ["", "The issue's targets on these runs (mirrored and turned displays left out of all but the first "
+            "two):", "",
             f"- CONFIDENT (no clicks: proposed) and wrong: {wrong} of {len(sel)} runs; names one level off "
             f"CONFIDENT: {sum(r['status'] == 'confident' for r in off)} of {len(off)}",
             f"- unnamed clicks named right: {sum(r['answer_right'] for r in unnamed)} / {len(unnamed)} "

@@ -139,3 +139,30 @@ def test_stored_files_load_through_the_product_reader(tmp_path, kind, bright):
         assert x.bone_dark is True and "1041" in x.sources["bone_dark"]
     shown = x.pixels
     assert (shown[BONE].mean() > shown[SOFT].mean()) == (bright and kind != "dcm-mono1")  # mono1: kept, dark
+
+
+@pytest.mark.parametrize("display_turn", ["turned-180", "flipped-up-down", "turned-90"])
+def test_a_turned_display_turns_image_truth_and_clicks_by_one_pixel_map(display_turn):
+    """The benchmark's turned displays: the stored pixels, the true P and the clicks all go through
+    ``display_map``'s F, so the turned truth projects each level where the turned image shows the acquired pixel."""
+    sc = scene("ii")
+    plain = rendered(sc, look())
+    turned = rendered(sc, look(display_turn=display_turn))
+    F, (cols, rows) = app.display_map(sc.detector.size_px, False, display_turn)
+    assert turned.shape == (rows, cols)
+    text = (plain == plain.max())  # burnt-in text is written after the turn: compare pixels away from it
+    acquired_v, acquired_u = np.nonzero(~text)
+    shown_u, shown_v = np.rint(app.displayed_uv(np.stack([acquired_u, acquired_v], 1), F)).astype(int).T
+    keep = turned[shown_v, shown_u] != turned.max()
+    assert keep.mean() > 0.9
+    np.testing.assert_array_equal(turned[shown_v[keep], shown_u[keep]], plain[acquired_v[keep], acquired_u[keep]])
+    truth, shown = app.truth_dict(sc, False), app.truth_dict(sc, False, display_turn)
+    assert shown["intrinsics"]["size_px"] == [cols, rows] and shown["display_turn"] == display_turn
+    for lb in sc.uv_true_px:
+        expected = app.displayed_uv(np.array(truth["levels"][lb]["uv_true_px"]), F)
+        assert shown["levels"][lb]["uv_true_px"] == pytest.approx(expected.tolist())
+        point = {"T11": [-10.0, 0.0, 20.0], "T12": [-8.0, 0.0, 0.0], "L1": [-6.0, 0.0, -20.0]}[lb]
+        uv_plain = project(np.array(truth["projection_matrix"]), np.array([point]))
+        uv_shown = project(np.array(shown["projection_matrix"]), np.array([point]))[0]
+        assert uv_shown == pytest.approx(app.displayed_uv(uv_plain, F)[0])
+    np.testing.assert_allclose(shown["clicks_uv_px"], app.displayed_uv(np.array(truth["clicks_uv_px"]), F))
