@@ -98,6 +98,18 @@ def turned_clicks(clicks: Landmarks2D, name: str, size_px: tuple[int, int]) -> L
                        _turned_pair(clicks.pixel_spacing_mm, name))
 
 
+def turn_advice(name: str | None) -> str:
+    """How to have the file registered in orientation ``name`` (None: no turn CarmReg offers does), as the end of a
+    sentence: the window's, the Slicer module's and the command line's way to the same turn."""
+    if name is None:
+        return ""
+    if name == "as-stored":
+        return (", or register the file as stored: X-ray orientation \"shown as stored\" (the window's step 1, the "
+                "Slicer module's Inputs) or, on the command line, without --orient-xray")
+    return (f", or have it turned: X-ray orientation \"shown {name.replace('-', ' ')}\" (the window's step 1, the "
+            f"Slicer module's Inputs) or, on the command line, --orient-xray {name}")
+
+
 def turned_xray(xray: XrayImage, name: str) -> XrayImage:
     """``xray`` turned by ``ORIENTATIONS[name]`` as the user asked (``--orient-xray``): its pixels and its detector
     (``turned_intrinsics``; none while the geometry is incomplete), recorded in ``sources["orientation"]`` (result.json

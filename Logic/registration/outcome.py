@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from carmreg.logic.geometry.camera import CarmPose, in_detector, project
 from carmreg.logic.geometry.projection_distance import pde_mm
-from carmreg.logic.image.turn import composed
+from carmreg.logic.image.turn import composed, turn_advice
 from carmreg.logic.io.landmarks import level_index
 from carmreg.logic.registration.depth import tx_limits
 from carmreg.logic.registration.levels import (
@@ -96,7 +96,7 @@ def refused_display(a, turned: str = "as-stored") -> str:
         return ""
     best, given = a.orientation_gc()
     as_given = "as stored" if turned == "as-stored" else f"turned {turned.replace('-', ' ')} as asked"
-    advice = _turn_advice(advised_turn(a, turned))
+    advice = turn_advice(advised_turn(a, turned))
     return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {given:.2f} "
             f"{as_given}): the display is mirrored or rotated; export the image as acquired (head up, patient's "
             f"right on the viewer's left) and register again{advice}")
@@ -109,17 +109,6 @@ def advised_turn(a, turned: str = "as-stored") -> str | None:
     if a is None or a.orientation == "as-stored":
         return None
     return composed(turned, a.orientation)
-
-
-def _turn_advice(name: str | None) -> str:
-    """How to have the file registered in orientation ``name`` (None: no turn CarmReg offers does)."""
-    if name is None:
-        return ""
-    if name == "as-stored":
-        return (", or register the file as stored: X-ray orientation \"shown as stored\" (the window's step 1, the "
-                "Slicer module's Inputs) or, on the command line, without --orient-xray")
-    return (f", or have it turned: X-ray orientation \"shown {name.replace('-', ' ')}\" (the window's step 1, the "
-            f"Slicer module's Inputs) or, on the command line, --orient-xray {name}")
 
 
 def result_problems(state: RegistrationState, pose: CarmPose) -> list[str]:

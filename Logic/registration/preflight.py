@@ -11,7 +11,8 @@ code 2. The rules:
 - at least 3 named CT centroids;
 - named clicks: at least ``MIN_CLICKS`` levels named on both the CT and the X-ray (``pair_by_label``);
 - unnamed or partly named clicks: at least ``MIN_CLICKS`` of them, and a labelling of consecutive CT levels that
-  can carry them (``check_labelling_possible``); no clicks at all is valid (levels from the image alone).
+  can carry them (``check_labelling_possible``); no clicks at all is valid (levels from the image alone);
+- named clicks that do not run head-down the image (``head_down``): CarmReg registers an AP view shown head up.
 
 ``check_landmarks`` then refuses points outside the CT or the image and coincident points (it needs the loaded
 CT and X-ray, so it runs in ``prepare``).
@@ -26,7 +27,15 @@ import numpy as np
 from carmreg.logic.errors import GeometryError, InputFileError, LandmarkError
 from carmreg.logic.geometry.camera import in_detector
 from carmreg.logic.geometry.volume import Volume
-from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs, pair_by_label, spine_order_warnings
+from carmreg.logic.image.turn import turn_advice
+from carmreg.logic.io.landmarks import (
+    Landmarks2D,
+    Landmarks3D,
+    Pairs,
+    level_index,
+    pair_by_label,
+    spine_order_warnings,
+)
 from carmreg.logic.io.xray import XrayImage
 from carmreg.logic.registration.labellings import check_labelling_possible, ct_level_names, identifiable_clicks
 
@@ -83,7 +92,7 @@ def preflight(ct_landmarks: Landmarks3D, clicks: Landmarks2D, *, ct_loaded: bool
         readiness.add(LandmarkError, f"only {len(ct_names)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: "
                                      f"label at least {MIN_CT_CENTROIDS} vertebrae in the CT")
         return readiness
-    problem = _clicks_problem(ct_landmarks, clicks, mode)
+    problem = _clicks_problem(ct_landmarks, clicks, mode) or _head_down_problem(clicks)
     if problem:
         readiness.add(LandmarkError, problem)
     return readiness
@@ -106,6 +115,43 @@ def _clicks_problem(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -
     return None
 
 
+
+
+HEAD_DOWN_COS = -0.5
+"""``head_down``: the cosine of the angle between the named clicks' head-to-sacrum direction and the image's down
+(+row) beyond which they run head-down: 120 degrees. A geometric bound, not a tuned one: the landmark fit turns
+the image in its plane at most 15 degrees from head up (``rx_deg``, ``fine.FineParameters.bounds``), and a run of
+adjacent vertebrae is never bent a further 105 degrees; a display turned 180 degrees or flipped up-down puts them
+near 180 degrees, a quarter turn near 90 (not caught here: the image's own orientation check judges it)."""
+
+
+def head_down(clicks: Landmarks2D) -> tuple[str, str] | None:
+    """(the most cranial named click's level, the most caudal's) when the direction d = uv_caudal - uv_cranial (pixels,
+    (column, row)) points up the image, ``d_row / |d| < HEAD_DOWN_COS``: the image shows the head at the bottom (a
+    display turned 180 degrees or flipped up-down) or the names are reversed; None otherwise or with fewer than two
+    named clicks."""
+    named = sorted(((lb, uv) for lb, uv in zip(clicks.labels, clicks.uv_px, strict=True) if lb is not None),
+                   key=lambda item: level_index(item[0]))
+    if len(named) < 2:
+        return None
+    (cranial, a), (caudal, b) = named[0], named[-1]
+    d = np.asarray(b, float) - np.asarray(a, float)
+    length = float(np.linalg.norm(d))
+    if length == 0.0 or d[1] / length >= HEAD_DOWN_COS:
+        return None
+    return cranial, caudal
+
+
+def _head_down_problem(clicks: Landmarks2D) -> str | None:
+    """``head_down`` in words, with the turn that shows the image head up (``image.turn.turn_advice``)."""
+    found = head_down(clicks)
+    if found is None:
+        return None
+    cranial, caudal = found
+    return (f"the named X-ray clicks run head-down ({cranial} lies below {caudal} on the image): CarmReg registers "
+            "an AP view shown head up, so the display is turned 180 degrees or flipped up-down, or the names are "
+            "reversed; check the names" + turn_advice("turned-180")
+            + " (\"flipped up down\", flipped-up-down, if the image then shows the patient mirrored)")
 
 
 def given_pairs(ct_landmarks: Landmarks3D, clicks: Landmarks2D) -> tuple[Pairs | None, list[str]]:

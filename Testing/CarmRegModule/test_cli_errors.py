@@ -138,6 +138,12 @@ def _colour_png(case) -> Path:
     return path
 
 
+def _names_reversed(c) -> dict:
+    """The case's named clicks with their names reversed along the spine (a display shown head-down, named right)."""
+    clicks = json.loads(c["xray_landmarks"].read_text())
+    return {"T11": clicks["L1"], "T12": clicks["T12"], "L1": clicks["T11"]}
+
+
 CASES = {
     "missing CT file": (lambda c: {"ct": c["folder"] / "nope.nrrd"}, "nope.nrrd: CT not found"),
     "empty X-ray file": (lambda c: {"xray": _write(c, "empty.png", b"")}, "empty.png: X-ray file is empty"),
@@ -162,6 +168,8 @@ CASES = {
                                "only 2 level(s) (T11, T12) are labelled on both the CT"),
     "two unnamed clicks": (lambda c: {"xray_landmarks": _write(c, "two_unnamed.json", [[60, 40], [60, 70]])},
                            "only 2 X-ray click(s): click the centres of at least 3"),
+    "named clicks head-down": (lambda c: {"xray_landmarks": _write(c, "head_down.json", _names_reversed(c))},
+                               "the named X-ray clicks run head-down (T11 lies below L1 on the image)"),
     "unknown level name": (lambda c: {"xray_landmarks": _write(c, "t14.json", {"T11": [1, 2],
                                                                              "T14": [3, 4]})},
                            "t14.json: landmark label 'T14' is not a vertebral level"),

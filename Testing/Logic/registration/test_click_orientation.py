@@ -11,6 +11,7 @@ import pytest
 from appearance_cases import copied
 from simulated_cases import simulated_ap_case
 
+from carmreg.logic.errors import LandmarkError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, project
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_AT_CLICKS_GC,
@@ -277,7 +278,7 @@ def as_acquired(sample_ct, case, drr_cache_dir):
     return _after_spatial(sample_ct, sim.pixels, sim.clicks.uv_px, sim.clicks.labels, geometry, drr_cache_dir)
 
 
-def _judged(state, rivals):
+def _judged(state, rivals, names_follow_clicks=True):
     """Judge ``rivals`` at the clicks' poses of ``state`` (after the spatial stage; nothing in it changes)."""
     p, a = state.parameters, state.appearance
     ctx = FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, state.xray_line_integral,
@@ -285,12 +286,15 @@ def _judged(state, rivals):
                      p.depth_step_mm)
     contexts = {o: oriented_context(ctx, o) for o in rivals}
     return orientation_at_clicks(contexts, state.click_polarity.registered[a.polarity], state.xray.size_px,
-                                 p.identify.rule, names_follow_clicks=True)
+                                 p.identify.rule, names_follow_clicks=names_follow_clicks)
 
 
 @pytest.mark.slow
 def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_is_told(sample_ct, case,
                                                                                        as_acquired, drr_cache_dir):
+    """As acquired, the stored display leads at the clicks' poses and the turn cannot fit the named clicks. Turned
+    180 degrees, the named clicks run head-down and are refused before any stage (``preflight.head_down``); unnamed,
+    the turn is registered and leads by the refusal's margin."""
     sim, geometry = case
     labels, uv = sim.clicks.labels, sim.clicks.uv_px
     shown = _judged(as_acquired[1], ("mirrored-left-right", "turned-180"))
@@ -299,9 +303,12 @@ def test_at_the_clicks_poses_a_display_as_acquired_leads_and_an_upside_down_one_
         + CLEAR_ORIENTATION_AT_CLICKS_GC
     assert not shown.fitted["turned-180"]  # named clicks upside down: no C-arm pose puts T9 below T11
 
-    _, turned = _after_spatial(sample_ct, sim.pixels[::-1, ::-1], orient_uv(uv, "turned-180", (512, 512)), labels,
-                               geometry, drr_cache_dir)
-    upside_down = _judged(turned, ("mirrored-left-right", "turned-180"))
+    turned_uv = orient_uv(uv, "turned-180", (512, 512))
+    with pytest.raises(LandmarkError, match="named X-ray clicks run head-down .* --orient-xray turned-180"):
+        _after_spatial(sample_ct, sim.pixels[::-1, ::-1], turned_uv, labels, geometry, drr_cache_dir)  # named
+    _, turned = _after_spatial(sample_ct, sim.pixels[::-1, ::-1], turned_uv, [None] * len(labels), geometry,
+                               drr_cache_dir)
+    upside_down = _judged(turned, ("mirrored-left-right", "turned-180"), names_follow_clicks=False)
     assert upside_down.fitted["turned-180"]
     assert upside_down.scores["turned-180"] >= upside_down.scores["as-stored"] + REFUSE_ORIENTATION_AT_CLICKS_GC
 
