@@ -12,7 +12,8 @@ code 2. The rules:
 - named clicks: at least ``MIN_CLICKS`` levels named on both the CT and the X-ray (``pair_by_label``);
 - unnamed or partly named clicks: at least ``MIN_CLICKS`` of them, and a labelling of consecutive CT levels that
   can carry them (``check_labelling_possible``); no clicks at all is valid (levels from the image alone);
-- named clicks that do not run head-down the image (``head_down``): CarmReg registers an AP view shown head up.
+- named clicks in spine order down the image, not head-down (``head_down``): CarmReg registers an AP view shown
+  head up.
 
 ``check_landmarks`` then refuses points outside the CT or the image and coincident points (it needs the loaded
 CT and X-ray, so it runs in ``prepare``).
