@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from carmreg.logic.errors import LandmarkError
@@ -23,8 +24,6 @@ def test_named_clicks_run_head_down_only_when_the_head_lies_clearly_below_the_sa
 
 def test_the_head_down_bound_is_120_degrees_from_the_image_down():
     """d = uv_caudal - uv_cranial at 115 and 125 degrees from +row: only the second runs head-down."""
-    import numpy as np
-
     def at(degrees):
         d = 100.0 * np.array([np.sin(np.radians(degrees)), np.cos(np.radians(degrees))])
         return Landmarks2D(["T11", "L1"], [[300.0, 300.0], list(np.array([300.0, 300.0]) + d)])
