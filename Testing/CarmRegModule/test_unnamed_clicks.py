@@ -202,6 +202,12 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
     store.rename(store.points()[-1].id, "L2")
     enabled, mode, text = state()
     assert enabled and mode == "named" and text.startswith("Ready: 3 levels")
+    # named head-down (a display turned 180 degrees, or the names reversed): refused with the turn, as everywhere
+    store.replace_all(["L2", "L1", "T12"], uv[1:4], undoable=False)
+    enabled, mode, text = state()
+    assert not enabled and mode == "named" and "run head-down (T12 lies below L2 on the image)" in text
+    assert 'X-ray orientation "shown turned 180"' in text
+    store.replace_all(["T12", "L1", "L2"], uv[1:4], undoable=False)
     # three named clicks of which only two have a CT centroid: leaving them unnamed is offered
     store.rename(store.find("L2").id, "L5")
     enabled, mode, text = state()
