@@ -52,6 +52,7 @@ from carmreg.logic.image.appearance import (
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     WITHOUT_SHADING_MM,
+    Appearance,
     dark_storage,
     database_gc,
     database_orientation,
@@ -123,6 +124,19 @@ def _settled(state: RegistrationState, checked_gc: float) -> bool:
     return a.clear and (a.clarity_gc >= checked_gc or state.xray.polarity_stated)
 
 
+def _database_orientation(state: RegistrationState, bone_dark: bool) -> dict:
+    """The database's orientation scores of the X-ray read as ``bone_dark`` (``appearance.orientation_scores``)."""
+    return orientation_scores(state.xray.pixels, state.mask, state.database.drrs, state.coarse_factor, bone_dark)
+
+
+def _other_appearance(state: RegistrationState) -> Appearance:
+    """The appearance in use under the other polarity (``Appearance.other_polarity``, never clear), with the database's
+    orientation verdict measured under that polarity; a bone-dark image converted as the polarity check at the clicks
+    converted it."""
+    a = state.appearance
+    return a.other_polarity(state.click_polarity.dark_storage, _database_orientation(state, not a.bone_dark))
+
+
 def _judged(winner: LabellingFit, labellings: list) -> bool:
     """Whether the contest's ``winner`` is one of the ``labellings`` (lists of level names) a check judged."""
     return any(winner.names(lb) for lb in labellings)
@@ -172,8 +186,7 @@ class AppearanceChecks:
         if state.image_polarity is not None:
             a.scores["without_clicks"] = state.image_polarity.as_dict()
         a.set_storage(gc_by_storage, state.xray.stated_storage)
-        a.set_orientation(orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor,
-                                             a.bone_dark))
+        a.set_orientation(_database_orientation(state, a.bone_dark))
         self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
         unshaded = self._polarity_at_clicks_without_shading(state, gc_by_storage)
@@ -273,10 +286,9 @@ class AppearanceChecks:
         if (cp is None or unshaded is not None or not a.clear or _settled(state, CHECKED_CLICKS_GC)
                 or p.polarity in POLARITIES or a.orientation != "as-stored" or a.orientation_at_clicks is None):
             return
-        scores = orientation_scores(xray.pixels, state.mask, state.database.drrs, state.coarse_factor, not a.bone_dark)
-        other = a.other_polarity(cp.dark_storage, scores)
+        other = _other_appearance(state)
         base = self._context(state, self._polarity_image(state, other.polarity, cp.dark_storage))
-        contexts = {o: oriented_context(base, o) for o in rival_orientations(scores)}
+        contexts = {o: oriented_context(base, o) for o in rival_orientations(other.orientation_scores)}
         self._report("spatial", 0.97, f"judging the display's orientation at the clicks as {other.polarity} too")
         evidence = orientation_at_clicks(contexts, list(cp.registered[other.polarity]), xray.size_px,
                                          p.identify.rule, names_follow_clicks=state.xray_landmarks.named,
@@ -377,10 +389,10 @@ class AppearanceChecks:
     def _database_verdicts(state: RegistrationState, again, gc_by_storage: dict) -> None:
         """The storage and the database's orientation verdict of a polarity verdict taken ``again`` (the orientation
         scores of the appearance in use when the polarity is the same, else measured under the new one)."""
-        a, xray = state.appearance, state.xray
+        a = state.appearance
         again.set_storage(gc_by_storage, state.xray.stated_storage)
-        again.set_orientation(a.orientation_scores if again.polarity == a.polarity else orientation_scores(
-            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, again.bone_dark))
+        again.set_orientation(a.orientation_scores if again.polarity == a.polarity
+                              else _database_orientation(state, again.bone_dark))
 
     @classmethod
     def _use_appearance(cls, state: RegistrationState, a, gc_by_storage: dict) -> None:
@@ -489,9 +501,8 @@ class AppearanceChecks:
         of the first contest. ``first``: the first contest's winner, or its leader before its searches for
         confidence (``first_status`` None: the pipeline asks before them). Either way
         ``scores["contest_under_other_polarity"]`` records both contests."""
-        a, cp, xray = state.appearance, state.click_polarity, state.xray
-        other = a.other_polarity(cp.dark_storage, orientation_scores(
-            xray.pixels, state.mask, state.database.drrs, state.coarse_factor, a.polarity != "bone-dark"))
+        a, xray = state.appearance, state.xray
+        other = _other_appearance(state)
         self._report("levels", 0.5, f"the best labelling explains the X-ray poorly as {a.polarity}: the contest "
                                     f"again as {other.polarity}")
         with _all_or_nothing(state) as kept:
