@@ -420,8 +420,8 @@ def summarize(rows: list[dict], which: str = "report") -> str:
 
 
 def shown_as_acquired(variant_name: str) -> bool:
-    """Whether the variant's display is neither mirrored nor turned (``appearance.display_map``): a display that is
-    is never to be named as stored, so the issue's targets but the first two leave it out."""
+    """Whether the variant's display is neither mirrored nor turned (``appearance.display_map``). A mirrored or turned
+    display is never to be named as stored, so the issue's targets but the first two leave it out."""
     changes = app.VARIANTS[variant_name].changes
     return not changes.get("mirrored") and changes.get("display_turn", "none") == "none"
 
