@@ -379,7 +379,8 @@ class CarmRegWidget(WindowActions, WindowData, WindowRegistration, WindowSession
 
         readiness = preflight(self.ct_store.to_landmarks(), self.xray_store.to_landmarks(),
                               ct_loaded=self.ct_volume is not None, xray_loaded=self.xray is not None,
-                              geometry_known=self.xray is not None and self.xray.intrinsics is not None)
+                              geometry_known=self.xray is not None and self.xray.intrinsics is not None,
+                              xray_size_px=None if self.xray is None else self.xray.size_px)
         if readiness.problems:
             self.registration_panel.set_ready(False, "Not ready: " + "; ".join(readiness.problems) + ".",
                                               readiness.mode)

@@ -192,7 +192,7 @@ class CarmRegLogic:
                                     f"X-ray image {xray.size_px} px; check the pixel spacing and image")
         check_xray_content(xray.pixels, xray.source)
         check_ct_content(ct.hu, ct.source)
-        preflight(ct_landmarks, xray_landmarks).raise_first()
+        preflight(ct_landmarks, xray_landmarks, xray_size_px=xray.size_px).raise_first()
         check_landmarks(ct, ct_landmarks, xray, xray_landmarks)
         xray_landmarks = ideal_clicks(xray_landmarks, intrinsics)
         pairs, notes = given_pairs(ct_landmarks, xray_landmarks)

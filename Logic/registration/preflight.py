@@ -12,8 +12,8 @@ code 2. The rules:
 - named clicks: at least ``MIN_CLICKS`` levels named on both the CT and the X-ray (``pair_by_label``);
 - unnamed or partly named clicks: at least ``MIN_CLICKS`` of them, and a labelling of consecutive CT levels that
   can carry them (``check_labelling_possible``); no clicks at all is valid (levels from the image alone);
-- named clicks in spine order down the image, not head-down (``head_down``): CarmReg registers an AP view shown
-  head up.
+- named clicks in spine order down the image, not head-down (``head_down``), and clicks (named or not) along the
+  course the CT's levels take in an AP view, not across it (``across``): CarmReg registers an AP view shown head up.
 
 ``check_landmarks`` then refuses points outside the CT or the image and coincident points (it needs the loaded
 CT and X-ray, so it runs in ``prepare``).
@@ -77,8 +77,9 @@ def click_mode(clicks: Landmarks2D) -> str:
 
 
 def preflight(ct_landmarks: Landmarks3D, clicks: Landmarks2D, *, ct_loaded: bool = True, xray_loaded: bool = True,
-              geometry_known: bool = True) -> Readiness:
-    """What stops a registration of these inputs now, in words (module docstring)."""
+              geometry_known: bool = True, xray_size_px: tuple[int, int] | None = None) -> Readiness:
+    """What stops a registration of these inputs now, in words (module docstring). ``xray_size_px``: the X-ray's
+    (columns, rows) when known; clicks off it are not judged for their course (``check_landmarks`` names them)."""
     mode = click_mode(clicks)
     ct_names = ct_level_names(ct_landmarks)
     readiness = Readiness(mode, common_levels=[lb for lb in ct_names if lb in set(clicks.labels)])
@@ -93,7 +94,8 @@ def preflight(ct_landmarks: Landmarks3D, clicks: Landmarks2D, *, ct_loaded: bool
         readiness.add(LandmarkError, f"only {len(ct_names)} CT centroid(s) in {ct_landmarks.source or 'the CT'}: "
                                      f"label at least {MIN_CT_CENTROIDS} vertebrae in the CT")
         return readiness
-    problem = _clicks_problem(ct_landmarks, clicks, mode) or _head_down_problem(clicks)
+    problem = (_clicks_problem(ct_landmarks, clicks, mode) or _head_down_problem(clicks)
+               or _across_problem(ct_landmarks, clicks, mode, xray_size_px))
     if problem:
         readiness.add(LandmarkError, problem)
     return readiness
@@ -116,8 +118,6 @@ def _clicks_problem(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -
     return None
 
 
-
-
 HEAD_DOWN_COS = -0.5
 """``head_down``: the cosine of the angle between the named clicks' head-to-sacrum direction and the image's down
 (+row) beyond which they run head-down: 120 degrees. A geometric bound, not a tuned one: the landmark fit turns
@@ -126,11 +126,9 @@ adjacent vertebrae is never bent a further 105 degrees; a display turned 180 deg
 near 180 degrees, a quarter turn near 90 (not caught here: the image's own orientation check judges it)."""
 
 
-def head_down(clicks: Landmarks2D) -> tuple[str, str] | None:
-    """(the most cranial named click's level, the most caudal's) when the direction d = uv_caudal - uv_cranial (pixels,
-    (column, row)) points up the image, ``d_row / |d| < HEAD_DOWN_COS``: the image shows the head at the bottom (a
-    display turned 180 degrees or flipped up-down) or the names are reversed; None otherwise or with fewer than two
-    named clicks."""
+def _head_to_sacrum(clicks: Landmarks2D) -> tuple[str, str, np.ndarray] | None:
+    """(the most cranial named click's level, the most caudal's, the unit direction d = uv_caudal - uv_cranial in
+    pixels (column, row)); None with fewer than two named clicks or when those two coincide."""
     named = sorted(((lb, uv) for lb, uv in zip(clicks.labels, clicks.uv_px, strict=True) if lb is not None),
                    key=lambda item: level_index(item[0]))
     if len(named) < 2:
@@ -138,9 +136,17 @@ def head_down(clicks: Landmarks2D) -> tuple[str, str] | None:
     (cranial, a), (caudal, b) = named[0], named[-1]
     d = np.asarray(b, float) - np.asarray(a, float)
     length = float(np.linalg.norm(d))
-    if length == 0.0 or d[1] / length >= HEAD_DOWN_COS:
+    return None if length == 0.0 else (cranial, caudal, d / length)
+
+
+def head_down(clicks: Landmarks2D) -> tuple[str, str] | None:
+    """(the most cranial named click's level, the most caudal's) when their direction d (``_head_to_sacrum``) points
+    up the image, ``d_row < HEAD_DOWN_COS``: the image shows the head at the bottom (a display turned 180 degrees or
+    flipped up-down) or the names are reversed; None otherwise or with fewer than two named clicks."""
+    found = _head_to_sacrum(clicks)
+    if found is None or found[2][1] >= HEAD_DOWN_COS:
         return None
-    return cranial, caudal
+    return found[0], found[1]
 
 
 def _head_down_problem(clicks: Landmarks2D) -> str | None:
@@ -153,6 +159,103 @@ def _head_down_problem(clicks: Landmarks2D) -> str | None:
             "an AP view shown head up, so the display is turned 180 degrees or flipped up-down, or the names are "
             "reversed; check the names" + turn_advice("turned-180")
             + " (\"flipped up down\", flipped-up-down, if the image then shows the patient mirrored)")
+
+
+QUARTER_TURN_DEG = 45.0
+"""``across``: the angle between the clicks' axis and the course of every run of CT levels they could be, as an AP
+view shown head up draws it, beyond which the clicks run across the image: nearer a quarter turn than head up. A
+geometric bound, not a tuned one: the landmark fit turns the image at most 15 degrees in its plane and the C-arm at
+most 15 degrees out of it (``fine.FineParameters.bounds``), which moves the drawn course of a few adjacent levels by
+at most about 30 degrees; a display turned a quarter moves it by 90 degrees less that."""
+ELONGATED = 2.0
+"""``across`` judges clicks only when they lie along a line: their spread along their axis at least this many times
+the spread across it (singular values of the centred clicks), else their axis says nothing."""
+
+
+@dataclass(frozen=True)
+class Across:
+    """Clicks that run across the image (``across``): ``angle_deg``, the smallest angle between their axis and the
+    drawn course of a run of CT levels they could be, that run's end levels ``levels`` (head first), and ``turn``,
+    the ``image.turn`` name that shows named clicks head up (None for unnamed clicks: either quarter turn may)."""
+
+    angle_deg: float
+    levels: tuple[str, str]
+    turn: str | None
+
+
+def _axis(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The unit principal axis of 2-D points and its elongation (first over second singular value, inf on a line)."""
+    singular, axes = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[1:]
+    return axes[0], (np.inf if singular[1] == 0.0 else float(singular[0] / singular[1]))
+
+
+def _drawn_course(points_lps_mm: np.ndarray) -> np.ndarray:
+    """The axis of CT points as an AP view shown head up draws them: (column, row) ~ (L, -S) (``geometry.camera``:
+    columns toward the patient's left, rows toward the feet), perspective and the C-arm's small turns left out."""
+    return _axis(np.stack([points_lps_mm[:, 0], -points_lps_mm[:, 2]], axis=1))[0]
+
+
+def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between the lines along unit vectors ``a`` and ``b``, degrees in [0, 90]."""
+    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b))))))
+
+
+def _candidate_runs(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -> list[list[str]]:
+    """The CT levels the clicks could be, one list per labelling: the names given (named clicks), else every run of
+    as many adjacent CT levels as there are clicks (unnamed or partly named)."""
+    if mode == "named":
+        known = set(ct_landmarks.labels)
+        return [[lb for lb in clicks.labels if lb in known]]
+    names, n = ct_level_names(ct_landmarks), len(clicks.labels)
+    return [names[s:s + n] for s in range(len(names) - n + 1)]
+
+
+def across(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str | None = None) -> Across | None:
+    """Whether the clicks run across the image: the angle between their axis (pixels) and the drawn course
+    (``_drawn_course``) of every run of CT levels they could be (``_candidate_runs``), mirrored left-right or not,
+    exceeds ``QUARTER_TURN_DEG``. None when they do not, when they do not lie along a line (``ELONGATED``) or when no
+    run has two CT levels. With two named clicks or more, ``turn`` shows them head up: ``turned-90`` when the head
+    lies right of the sacrum on the image (np.rot90 turns counter-clockwise), else ``turned-270``."""
+    uv = np.asarray(clicks.uv_px, float).reshape(-1, 2)
+    if len(uv) < 2:
+        return None
+    axis, elongation = _axis(uv)
+    if elongation < ELONGATED:
+        return None
+    points = dict(zip(ct_landmarks.labels, np.asarray(ct_landmarks.points_lps_mm, float), strict=True))
+    best = None
+    for run in _candidate_runs(ct_landmarks, clicks, mode or click_mode(clicks)):
+        if len(run) < 2:
+            continue
+        course = _drawn_course(np.array([points[lb] for lb in run]))
+        angle = min(_line_angle_deg(axis, course), _line_angle_deg(axis, course * (-1.0, 1.0)))
+        if best is None or angle < best[0]:
+            best = (angle, (run[0], run[-1]))
+    if best is None or best[0] <= QUARTER_TURN_DEG:
+        return None
+    named = _head_to_sacrum(clicks)
+    turn = None if named is None else ("turned-90" if named[2][0] < 0 else "turned-270")
+    return Across(best[0], best[1], turn)
+
+
+def _across_problem(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str,
+                    xray_size_px: tuple[int, int] | None) -> str | None:
+    """``across`` in words, with the quarter turn that shows the image head up (both when the clicks are unnamed);
+    None for clicks off an image of ``xray_size_px`` (a click in the wrong place, not a turned display)."""
+    if mode == "image_only" or (xray_size_px is not None and not all(
+            in_detector(uv, xray_size_px) for uv in np.asarray(clicks.uv_px, float).reshape(-1, 2))):
+        return None
+    found = across(ct_landmarks, clicks, mode)
+    if found is None:
+        return None
+    first, last = found.levels
+    said = (f"the X-ray clicks run across the image ({found.angle_deg:.0f} degrees from the course {first}-{last} "
+            "takes in the CT): CarmReg registers an AP view shown head up, so the display is turned a quarter")
+    if found.turn is not None:
+        return said + "; check the clicks" + turn_advice(found.turn)
+    return (said + ": have it turned so that the head is at the top: X-ray orientation \"shown turned 90\" (a quarter "
+            "counter-clockwise) or \"shown turned 270\" (clockwise) (the window's step 1, the Slicer module's Inputs) "
+            "or, on the command line, --orient-xray turned-90 or turned-270")
 
 
 def given_pairs(ct_landmarks: Landmarks3D, clicks: Landmarks2D) -> tuple[Pairs | None, list[str]]:

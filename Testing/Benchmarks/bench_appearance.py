@@ -391,9 +391,12 @@ def summarize(rows: list[dict], which: str = "report") -> str:
         runs = [r for r in sel if app.VARIANTS[r["variant"]].changes.get("display_turn") == turn]
         if runs:
             wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in runs)
+            early = [r for r in runs if _refused_for_the_clicks(r)]
             lines += ["", f"Display {turn}: {sum(r['status'] == 'confident' for r in runs)} of {len(runs)} runs "
                       f"CONFIDENT, {wrong} CONFIDENT (no clicks: proposed) and wrong; refused as a display turned "
-                      f"(no level named): {sum(_refused_display(r) for r in runs)}."]
+                      f"(no level named): {sum(_refused_display(r) for r in runs)}; refused before any stage for "
+                      f"their clicks (head-down or across the image): {len(early)}, naming the turn back "
+                      f"({TURNED_BACK_BY[turn]}) {sum(TURNED_BACK_BY[turn] in r['stderr'] for r in early)}."]
     turned = [r for r in sel if r.get("turned")]
     if turned:
         wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in turned)
@@ -430,6 +433,16 @@ def _refused_display(row: dict) -> bool:
     """Whether the run's X-ray was refused for its display: matched best mirrored or turned (result.json
     ``appearance.orientation``, ``outcome.refused_display``)."""
     return (row.get("appearance") or {}).get("orientation", "as-stored") != "as-stored"
+
+
+TURNED_BACK_BY = {"turned-180": "turned-180", "flipped-up-down": "flipped-up-down", "turned-90": "turned-270"}
+"""The ``--orient-xray`` turn that shows each of ``appearance.DISPLAY_TURNS``'s displays head up again."""
+
+
+def _refused_for_the_clicks(row: dict) -> bool:
+    """Whether the run was refused before any stage for its clicks' course (``preflight.head_down``, ``across``): exit
+    code 2 with a turn advised."""
+    return row.get("exit") == 2 and "--orient-xray" in (row.get("stderr") or "")
 
 
 def _unfitted(runs: list[dict]) -> np.ndarray:

@@ -144,6 +144,11 @@ def _names_reversed(c) -> dict:
     return {"T11": clicks["L1"], "T12": clicks["T12"], "L1": clicks["T11"]}
 
 
+def _transposed(c) -> list:
+    """The case's clicks unnamed, columns and rows swapped (a display turned a quarter and mirrored)."""
+    return [[v, u] for u, v in json.loads(c["xray_landmarks"].read_text()).values()]
+
+
 CASES = {
     "missing CT file": (lambda c: {"ct": c["folder"] / "nope.nrrd"}, "nope.nrrd: CT not found"),
     "empty X-ray file": (lambda c: {"xray": _write(c, "empty.png", b"")}, "empty.png: X-ray file is empty"),
@@ -170,6 +175,8 @@ CASES = {
                            "only 2 X-ray click(s): click the centres of at least 3"),
     "named clicks head-down": (lambda c: {"xray_landmarks": _write(c, "head_down.json", _names_reversed(c))},
                                "the named X-ray clicks run head-down (T11 lies below L1 on the image)"),
+    "unnamed clicks across the image": (lambda c: {"xray_landmarks": _write(c, "across.json", _transposed(c))},
+                                        "the X-ray clicks run across the image ("),
     "unknown level name": (lambda c: {"xray_landmarks": _write(c, "t14.json", {"T11": [1, 2],
                                                                              "T14": [3, 4]})},
                            "t14.json: landmark label 'T14' is not a vertebral level"),
