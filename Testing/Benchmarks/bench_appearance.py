@@ -233,7 +233,7 @@ def register(xray: Path, ct: Path, ct_lm: Path, clicks: Path | None, out: Path, 
         code, err = -9, f"timeout after {timeout_s:.0f} s"
     seconds = time.perf_counter() - t0
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    return code, seconds, (lines[-1] if lines else "")[:300]
+    return code, seconds, (lines[-1] if lines else "")[:1000]
 
 
 def polarity_read(result: dict, xray: Path, detector: app.Detector) -> tuple[str | None, str]:

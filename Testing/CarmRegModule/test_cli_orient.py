@@ -1,5 +1,6 @@
 """`carmreg register --orient-xray`: an X-ray whose display was stored mirrored is turned back, with its clicks,
-before registering (``image.turn``), and registers as the acquisition itself does; the turn is recorded."""
+before registering (``image.turn``), and registers as the acquisition itself does; the turn is recorded. One whose
+clicks run across the image is refused at once, naming the quarter turn that undoes it (``preflight.across``)."""
 
 import json
 
@@ -52,3 +53,26 @@ def test_a_display_stored_mirrored_and_turned_back_registers_as_the_acquisition(
         if lv["label"] in visible:  # where the acquisition shows it, not where the mirrored file does
             error_px = np.hypot(*(np.asarray(lv["uv_px"]) - levels[lv["label"]]["uv_true_px"]))
             assert error_px * xray.intrinsics.pixel_spacing_mm[0] < 5.0, lv
+
+
+def test_a_display_stored_turned_a_quarter_is_refused_at_once_naming_the_turn_that_undoes_it(
+        sample_case_dir, tmp_path, capsys):
+    """The sample X-ray written turned a quarter counter-clockwise, with its named clicks as that image shows them:
+    one line, exit code 2, before any stage, naming ``--orient-xray turned-270``, the turn that puts the clicks back
+    where the acquisition shows them (registering a display so turned back: ``test_orientation_gui.py``)."""
+    from carmreg.logic.image.turn import ORIENTATIONS, orient_uv
+
+    xray = load_xray(sample_case_dir / "xray.dcm")
+    write_xray_dicom(tmp_path / "turned.dcm", np.ascontiguousarray(ORIENTATIONS["turned-90"](
+        xray.pixels.astype(np.uint16))), xray.intrinsics, sod_mm=xray.sod_mm)
+    truth = read_landmarks_2d(sample_case_dir / "xray_centroids.mrk.json")
+    stored_uv = orient_uv(truth.uv_px, "turned-90", xray.size_px)
+    (tmp_path / "turned.json").write_text(json.dumps(dict(zip(truth.labels, stored_uv.tolist(), strict=True))))
+    code = main(["register", "--ct", str(sample_case_dir / "ct.nrrd"), "--ct-landmarks",
+                 str(sample_case_dir / "ct_centroids.mrk.json"), "--xray", str(tmp_path / "turned.dcm"),
+                 "--xray-landmarks", str(tmp_path / "turned.json"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+    assert err.startswith("carmreg: error: the X-ray clicks run across the image (") and err.endswith(
+        "--orient-xray turned-270")
+    np.testing.assert_allclose(orient_uv(stored_uv, "turned-270", xray.size_px[::-1]), truth.uv_px, atol=1e-9)
