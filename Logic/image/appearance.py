@@ -201,6 +201,20 @@ def database_orientation(scores: dict) -> str:
     return best if scores[best] - scores["as-stored"] >= REFUSE_ORIENTATION_GC else "as-stored"
 
 
+def displayed_rival(scores: dict, fitted: dict, against_gc: float) -> str | None:
+    """The orientation an image is displayed in, judged at the clicks (``click_orientation``): of the rivals of the
+    stored one (``scores``: {orientation: GC}, nan or None where the clicks could not be fitted), the best that keeps
+    the clicks fitted (``fitted``), when
+
+        g(o) - against_gc >= REFUSE_ORIENTATION_AT_CLICKS_GC
+
+    else None. ``against_gc``: the stored image's GC at the clicks (``Appearance.set_orientation_at_clicks``), or
+    under the polarity taken when ``scores`` are the other polarity's (``displayed_under_other_polarity``)."""
+    rivals = [o for o, g in scores.items() if o != "as-stored" and g is not None and np.isfinite(g) and fitted[o]]
+    best = max(rivals, key=scores.get, default=None)
+    return best if best is not None and scores[best] - against_gc >= REFUSE_ORIENTATION_AT_CLICKS_GC else None
+
+
 def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -> bool:
     """Whether a level answer may be confident on this appearance: the polarity clear, and the image matching the
     CT best as stored by a clear lead (``CLEAR_ORIENTATION_GC`` on the database, ``CLEAR_ORIENTATION_AT_CLICKS_GC``
@@ -332,10 +346,11 @@ class Appearance:
     def set_orientation_at_clicks(self, evidence: dict, clear_gc: float | None = None) -> None:
         """Decide the orientation again from the GC at the clicks' poses (``click_orientation``; ``evidence``:
         its ``as_dict()``), which replaces the database's verdict: another orientation is taken (and the image
-        refused) when it leads the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted; the
-        stored one is clear when it leads every judged rival by ``clear_gc`` (None: ``CLEAR_ORIENTATION_AT_CLICKS_GC``;
-        more when the evidence leans toward the stored orientation) and the database did not find another
-        orientation clearly better (a conflict of the two is never clear)."""
+        refused) when it leads the stored one by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted
+        (``displayed_rival``); the stored one is clear when it leads every judged rival, fitted or not, by
+        ``clear_gc`` (None: ``CLEAR_ORIENTATION_AT_CLICKS_GC``; more when the evidence leans toward the stored
+        orientation) and the database did not find another orientation clearly better (a conflict of the two is
+        never clear)."""
         database_refused = self.orientation != "as-stored"  # the database's verdict, before this one
         self.orientation_at_clicks = dict(evidence)
         self.orientation_decided_by = f"image ({REFINED_AT_CLICKS})"
@@ -344,7 +359,7 @@ class Appearance:
         judged = [o for o in scores if o != "as-stored" and np.isfinite(scores[o])]  # nan: clicks not fittable
         rival = max(judged, key=scores.get, default=None)
         lead = stored - scores[rival] if rival is not None else np.inf
-        self.orientation = rival if -lead >= REFUSE_ORIENTATION_AT_CLICKS_GC and fitted[rival] else "as-stored"
+        self.orientation = displayed_rival(scores, fitted, stored) or "as-stored"
         clear_gc = CLEAR_ORIENTATION_AT_CLICKS_GC if clear_gc is None else clear_gc
         self.orientation_clear = bool(lead >= clear_gc and not database_refused)
 

@@ -41,11 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry
-from carmreg.logic.image.appearance import (
-    CLEAR_ORIENTATION_GC,
-    CLOSE_ORIENTATION_AT_CLICKS_GC,
-    REFUSE_ORIENTATION_AT_CLICKS_GC,
-)
+from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, CLOSE_ORIENTATION_AT_CLICKS_GC, displayed_rival
 from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_intrinsics
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
@@ -130,18 +126,14 @@ def close_call(scores: dict) -> bool:
 
 def displayed_under_other_polarity(evidence: ClickOrientation, taken_gc: float) -> str | None:
     """The orientation o the image is displayed in, judged at the clicks under the polarity not taken
-    (``evidence``, ``orientation_at_clicks`` under it), when its best rival keeps the clicks fitted and
+    (``evidence``, ``orientation_at_clicks`` under it): its best rival that keeps the clicks fitted when
 
         g'(o) - taken_gc >= REFUSE_ORIENTATION_AT_CLICKS_GC
 
-    with ``taken_gc`` the stored image's GC at the clicks under the polarity taken; else None
+    with ``taken_gc`` the stored image's GC at the clicks under the polarity taken (``image.appearance.
+    displayed_rival``, the rule the polarity taken judges its own display by); else None
     (``appearance_checks._orientation_under_other_polarity``)."""
-    rivals = [o for o, g in evidence.scores.items()
-              if o != "as-stored" and g is not None and np.isfinite(g) and evidence.fitted[o]]
-    best = max(rivals, key=evidence.scores.get, default=None)
-    if best is None or evidence.scores[best] - taken_gc < REFUSE_ORIENTATION_AT_CLICKS_GC:
-        return None
-    return best
+    return displayed_rival(evidence.scores, evidence.fitted, taken_gc)
 
 
 def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: str, polarity: str,

@@ -108,6 +108,9 @@ def test_the_rule_at_the_clicks_each_part_deciding():
     assert (a.orientation, a.orientation_clear) == ("as-stored", False)  # its GC bought off the clicks: unclear
     a.set_orientation_at_clicks({"scores": base, "fitted": fitted})
     assert (a.orientation, a.orientation_clear) == ("as-stored", True)  # no rival could even fit the clicks
+    hidden = {**leading, "turned-180": 0.9}  # the top rival's GC bought off the clicks hides no fitted rival
+    a.set_orientation_at_clicks({"scores": hidden, "fitted": {**fitted, "turned-180": False}})
+    assert (a.orientation, a.orientation_clear) == ("mirrored-left-right", False)
     refused = _appearance()
     refused.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.45})  # the database: mirrored
     assert refused.orientation == "mirrored-left-right"
