@@ -207,6 +207,12 @@ def test_register_is_enabled_for_unnamed_clicks_and_no_clicks_and_says_which_mod
     enabled, mode, text = state()
     assert not enabled and mode == "named" and "run head-down (T12 lies below L2 on the image)" in text
     assert 'X-ray orientation "shown turned 180"' in text
+    # unnamed clicks across the image (a display turned a quarter): refused with both quarter turns
+    across = np.asarray(uv[1:4], float)[:, ::-1].tolist()  # columns and rows swapped: the spine runs across
+    store.replace_all([None, None, None], across, undoable=False)
+    enabled, mode, text = state()
+    assert not enabled and mode == "unnamed" and "the X-ray clicks run across the image (" in text
+    assert "--orient-xray turned-90 or turned-270" in text
     store.replace_all(["T12", "L1", "L2"], uv[1:4], undoable=False)
     # three named clicks of which only two have a CT centroid: leaving them unnamed is offered
     store.rename(store.find("L2").id, "L5")
