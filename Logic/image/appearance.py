@@ -125,10 +125,12 @@ Without clicks the same holds (stop 28): a mirrored display the database did not
 unclear, often for the wrong polarity (the appearance benchmark's report halves: 5 of the 7 such runs recorded at stops
 21 and 27). So when the polarity found without clicks is unclear and the orientation not clearly as stored (the user did
 not set the polarity), each polarity is refined on the image mirrored left-right as on the image as stored
-(``REFINED_ON_MIRROR_WITHOUT_CLICKS``, ``appearance_checks._polarity_on_mirror_without_clicks``). When the mirror's
-leading polarity then agrees with the image by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as stored does
-under that polarity, the display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the
-image refused (``Appearance.set_orientation_on_mirror``). Otherwise nothing changes but the record.
+(``REFINED_ON_MIRROR_WITHOUT_CLICKS``, ``appearance_checks._orientation_without_clicks``), and since stop 56 on the
+image flipped up-down and turned 180 degrees too where the database could not rule those out
+(``refined_on_without_clicks``). When the best of them, under its own leading polarity, agrees with the image by
+``REFUSE_ORIENTATION_AT_CLICKS_GC`` more than the image as stored does under that polarity, the display is so shown:
+that verdict is taken (clear at ``CLEAR_REFINED_GC``) and the image refused
+(``Appearance.set_orientation_without_clicks``). Otherwise nothing changes but the record.
 
 A polarity still unclear without clicks, or clear by less than ``CHECKED_REFINED_GC`` (stop 32; the image's verdict,
 the file not stating a polarity), on an image taken as stored (the user did not set it), gets a second
@@ -175,7 +177,14 @@ FITTED_MIN_GC = 0.10        # ... and a registration's GC before its keeping the
 REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
 REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # ... on the mirrored display
-REFINED_ON_MIRROR_WITHOUT_CLICKS = "refined, on the image mirrored left-right"  # no clicks, on the mirrored display
+
+
+def refined_on_without_clicks(orientation: str) -> str:
+    """No clicks: how a polarity refined on orientation ``orientation`` of the image was measured (``decided_by``)."""
+    return f"refined, on the image {orientation.replace('-', ' ')}"
+
+
+REFINED_ON_MIRROR_WITHOUT_CLICKS = refined_on_without_clicks("mirrored-left-right")  # no clicks, the mirrored display
 CHECKED_REFINED_GC = 0.35   # no clicks: a clear verdict leading by less than this gets the second opinion too (the
 #                             tune half's wrong no-click verdicts led by up to 0.332)
 CHECKED_CLICKS_GC = CHECKED_REFINED_GC  # with clicks: the same (stop 36; no tune half has a wrong clear verdict
@@ -250,7 +259,7 @@ class Appearance:
     orientation_clear: bool = True    # the stored orientation leads every other clearly (by whatever decided)
     orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)", or on the mirror
     orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
-    orientation_on_mirror: dict | None = None  # no clicks: {orientation: refined GC} that took the mirror
+    orientation_without_clicks: dict | None = None  # no clicks: {orientation: refined GC} that took another one
     storage_from: str = STORAGE_FROM_IMAGE  # or the file's statement (``XrayImage.stated_storage``)
 
     @property
@@ -363,14 +372,14 @@ class Appearance:
         clear_gc = CLEAR_ORIENTATION_AT_CLICKS_GC if clear_gc is None else clear_gc
         self.orientation_clear = bool(lead >= clear_gc and not database_refused)
 
-    def set_orientation_on_mirror(self, scores: dict) -> None:
-        """Without clicks: the display taken as mirrored left-right from the refined image-alone registrations
-        (``scores``: {"as-stored": GC, "mirrored-left-right": GC}, each the best under the polarity used), which
-        ``appearance_checks._polarity_on_mirror_without_clicks`` does only when the mirror leads by
-        ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
-        self.orientation_on_mirror = {k: float(v) for k, v in scores.items()}
-        self.orientation, self.orientation_clear = "mirrored-left-right", False
-        self.orientation_decided_by = f"image ({REFINED_ON_MIRROR_WITHOUT_CLICKS})"
+    def set_orientation_without_clicks(self, orientation: str, scores: dict) -> None:
+        """Without clicks: the display taken as ``orientation`` (mirrored left-right, flipped up-down or turned 180
+        degrees) from the refined image-alone registrations (``scores``: {"as-stored": GC, orientation: GC}, each the
+        best under the polarity used), which ``appearance_checks._orientation_without_clicks`` does only when it
+        leads by ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
+        self.orientation_without_clicks = {k: float(v) for k, v in scores.items()}
+        self.orientation, self.orientation_clear = orientation, False
+        self.orientation_decided_by = f"image ({refined_on_without_clicks(orientation)})"
 
     def summary(self, turned: str = "as-stored") -> str:
         """The appearance in words, for the CLI, the window and the report: polarity (``note``), storage, and the
@@ -378,7 +387,8 @@ class Appearance:
         by before registering (``image.turn``; result.json ``inputs.xray_turned``), which the orientation is
         relative to."""
         where = ("at the clicks' poses" if self.orientation_at_clicks is not None else
-                 "refined on the image and its mirror" if self.orientation_on_mirror is not None else
+                 f"refined on the image as stored and {self.orientation.replace('-', ' ')}"
+                 if self.orientation_without_clicks is not None else
                  "on the DRR database")
         how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
         stated = " (as the file states)" if self.storage_from == STORAGE_FROM_FILE else ""
@@ -392,7 +402,7 @@ class Appearance:
     def orientation_gc(self) -> tuple[float, float]:
         """(GC of the orientation taken, GC as stored) from the scores that decided it."""
         scores = (self.orientation_at_clicks["scores"] if self.orientation_at_clicks is not None
-                  else self.orientation_on_mirror or self.orientation_scores)
+                  else self.orientation_without_clicks or self.orientation_scores)
         return float(scores[self.orientation]), float(scores["as-stored"])
 
     def as_dict(self) -> dict:

@@ -14,8 +14,9 @@ lead) and the user did not set the polarity:
    image mirrored left-right (``_polarity_on_mirror``; without the shading too when the second opinion is clear):
    a mirrored display is refused; then a clear verdict the second opinion did not confirm has the display judged
    under the other polarity too (``_orientation_under_other_polarity``);
-5. without clicks, the image mirrored left-right (``_polarity_on_mirror_without_clicks``; a mirrored display is
-   refused), then a second opinion without the image's shading (``_polarity_without_shading``);
+5. without clicks, the image mirrored left-right, and flipped or turned 180 degrees where the database could not rule
+   that out (``_orientation_without_clicks``; a display so shown is refused), then a second opinion without the
+   image's shading (``_polarity_without_shading``);
 6. the warnings on the appearance.
 
 ``with_winner`` is the levels stage's ``judge_appearance``: the contest's winner judged at the clicks too. When the
@@ -47,7 +48,6 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_CLICKS_WITHOUT_SHADING,
     REFINED_AT_DATABASE_POSES,
     REFINED_ON_MIRROR,
-    REFINED_ON_MIRROR_WITHOUT_CLICKS,
     REFINED_ON_MIRROR_WITHOUT_SHADING,
     REFINED_WITHOUT_SHADING,
     REFUSE_ORIENTATION_AT_CLICKS_GC,
@@ -59,6 +59,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     image_polarity,
     orientation_scores,
+    refined_on_without_clicks,
 )
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import shading_remover
@@ -96,6 +97,20 @@ from carmreg.logic.registration.levels import LevelIdentification, explains_the_
 from carmreg.logic.registration.preflight import MIN_CLICKS
 from carmreg.logic.registration.spatial import spatial_search
 from carmreg.logic.registration.state import RegistrationState
+
+WITHOUT_CLICKS_TURNS = (MIRROR, "flipped-up-down", "turned-180")
+"""The displays ``_orientation_without_clicks`` refines on: those that keep the image's shape (a quarter turn swaps its
+columns and rows, so the database's DRRs could not seed it); the mirror always, the others when not ruled out."""
+
+
+def _rivals_without_clicks(database_scores: dict) -> list[str]:
+    """Of ``WITHOUT_CLICKS_TURNS``, the mirror and those the database could not rule out (``rival_orientations``)."""
+    return [o for o in rival_orientations(database_scores) if o in WITHOUT_CLICKS_TURNS]
+
+
+def _without_clicks_key(orientation: str) -> str:
+    """The ``Appearance.scores`` key of the image-alone evidence on ``orientation`` (the mirror's as since stop 28)."""
+    return "without_clicks_on_mirror" if orientation == MIRROR else f"without_clicks_on_{orientation}"
 
 
 @contextlib.contextmanager
@@ -192,7 +207,7 @@ class AppearanceChecks:
         unshaded = self._polarity_at_clicks_without_shading(state, gc_by_storage)
         self._polarity_on_mirror(state, gc_by_storage, unshaded)
         self._orientation_under_other_polarity(state, gc_by_storage, unshaded)
-        self._polarity_on_mirror_without_clicks(state, gc_by_storage)
+        self._orientation_without_clicks(state, gc_by_storage)
         self._polarity_without_shading(state, gc_by_storage)
         self._appearance_warnings(state)
         return state.appearance.as_dict()
@@ -322,29 +337,34 @@ class AppearanceChecks:
 
         return polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
 
-    def _polarity_on_mirror_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> None:
+    def _orientation_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> None:
         """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did
-        not set the polarity): each polarity refined again on the image mirrored left-right, as on the image as
-        stored (``polarity_from_image``). When the mirror's leading polarity p then gives
-        ``GC_mirror(p) - GC_stored(p) >= REFUSE_ORIENTATION_AT_CLICKS_GC`` (each the best refined GC under p), the
-        display is mirrored: the mirror's verdict is taken (clear at ``CLEAR_REFINED_GC``) and the image refused
-        (``Appearance.set_orientation_on_mirror``). Otherwise the appearance stays as it was, with the mirror's
-        evidence recorded (``scores["without_clicks_on_mirror"]``). The levels stage keeps the image as stored (a
-        refused image names no level)."""
+        not set the polarity): each polarity refined again on each rival display o of the image as on the image as
+        stored (``polarity_from_image``): the mirror always, and the image flipped up-down or turned 180 degrees
+        where the database could not rule that out (``_rivals_without_clicks``). For each o, with p its leading
+        polarity, the lead ``GC_o(p) - GC_stored(p)`` (each the best refined GC under p); when the best lead reaches
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC``, the display is that o: its verdict is taken (clear at
+        ``CLEAR_REFINED_GC``) and the image refused (``Appearance.set_orientation_without_clicks``). Otherwise the
+        appearance stays as it was, with the evidence recorded (``scores["without_clicks_on_mirror"]``,
+        ``scores["without_clicks_on_<o>"]``). The levels stage keeps the image as stored (a refused image names no
+        level)."""
         a, p, stored = state.appearance, state.parameters, state.image_polarity
         if (stored is None or a.clear or p.polarity in POLARITIES
                 or (a.orientation == "as-stored" and a.orientation_clear)):
             return
-        mirrored = self.polarity_from_image(state, gc_by_storage, MIRROR)
-        a.scores["without_clicks_on_mirror"] = on_mirror = mirrored.as_dict()
-        seen, _ = image_polarity(mirrored.scores)
-        gc = {"as-stored": stored.scores[seen], MIRROR: mirrored.scores[seen]}
-        if gc[MIRROR] - gc["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
+        judged, leads = {}, {}
+        for o in _rivals_without_clicks(a.orientation_scores):
+            judged[o] = self.polarity_from_image(state, gc_by_storage, o)
+            a.scores[_without_clicks_key(o)] = judged[o].as_dict()
+            seen, _ = image_polarity(judged[o].scores)
+            leads[o] = {"as-stored": stored.scores[seen], o: judged[o].scores[seen]}
+        best = max(leads, key=lambda o: leads[o][o] - leads[o]["as-stored"], default=None)
+        if best is None or leads[best][best] - leads[best]["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
             return
-        again = self._polarity_again(state, mirrored.scores, REFINED_ON_MIRROR_WITHOUT_CLICKS)
-        again.scores.update(without_clicks=a.scores["without_clicks"], without_clicks_on_mirror=on_mirror)
+        again = self._polarity_again(state, judged[best].scores, refined_on_without_clicks(best))
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
         self._database_verdicts(state, again, gc_by_storage)
-        again.set_orientation_on_mirror(gc)
+        again.set_orientation_without_clicks(best, leads[best])
         self._use_appearance(state, again, gc_by_storage)
 
     def _polarity_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:

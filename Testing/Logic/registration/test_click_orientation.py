@@ -250,11 +250,11 @@ def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and
     assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
     assert mirrored["bone-dark"] >= mirrored["bone-bright"] + CLEAR_REFINED_GC
     assert (a.polarity, a.clear, a.decided_by) == ("bone-dark", True, f"image ({REFINED_ON_MIRROR_WITHOUT_CLICKS})")
-    assert a.orientation_on_mirror == {"as-stored": stored["bone-dark"], MIRROR: mirrored["bone-dark"]}
+    assert a.orientation_without_clicks == {"as-stored": stored["bone-dark"], MIRROR: mirrored["bone-dark"]}
     assert mirrored["bone-dark"] >= stored["bone-dark"] + REFUSE_ORIENTATION_AT_CLICKS_GC
     assert (a.orientation, a.trusted) == (MIRROR, False)
     assert a.orientation_gc() == (mirrored["bone-dark"], stored["bone-dark"])  # what the refusal's words quote
-    assert "refined on the image and its mirror" in a.summary()
+    assert "refined on the image as stored and mirrored left right" in a.summary()
 
 
 @pytest.fixture(scope="module")
