@@ -191,16 +191,16 @@ def mirrored_display(tmp_path_factory, drr_cache_dir):
     return ct, centroids, xray, np.asarray(truth["clicks_uv_px"], float), params
 
 
-def _mirrored_chest_scene(case: int, folder: Path):
+def _mirrored_chest_scene(case: int, folder: Path, variant_name: str = "ii-dark-mirrored-png"):
     """(CT, its centroids, X-ray, truth): the appearance benchmark's scene ``case`` drawn on the chest CT (no
-    ../shared needed) as the intensifier image shown mirrored left-right, bone dark, 16-bit PNG, written to
-    ``folder`` and read as ``carmreg register`` reads it."""
+    ../shared needed) as ``variant_name`` shows it (by default the intensifier image shown mirrored left-right, bone
+    dark, 16-bit PNG), written to ``folder`` and read as ``carmreg register`` reads it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=False)
-    variant = app.VARIANTS["ii-dark-mirrored-png"]
+    variant = app.VARIANTS[variant_name]
     record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case, folder)
     detector = app.DETECTORS[variant.detector]
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
@@ -255,6 +255,24 @@ def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and
     assert (a.orientation, a.trusted) == (MIRROR, False)
     assert a.orientation_gc() == (mirrored["bone-dark"], stored["bone-dark"])  # what the refusal's words quote
     assert "refined on the image as stored and mirrored left right" in a.summary()
+
+
+@pytest.mark.slow
+def test_without_clicks_a_display_flipped_up_down_is_refused_naming_the_flip(tmp_path, drr_cache_dir):
+    """The benchmark's flat-panel TIFF shown flipped up-down, bone bright (scene 502 drawn on the chest CT), no
+    clicks: the image alone leaves its polarity unclear, and the database cannot rule the flip out; refined on the
+    image flipped, bone bright leads clearly and agrees with the image far more than the stored image does under it:
+    refused as flipped up-down (stop 56; until then only the mirror was refined, and the answer was ambiguous with the
+    display as stored)."""
+    ct, centroids, xray, _ = _mirrored_chest_scene(502, tmp_path, "fp-bright-flipped-tiff")
+    params = RegistrationParameters(cache_dir=drr_cache_dir)
+    a = _appearance_found((ct, centroids, xray, None, params), Landmarks2D([], np.zeros((0, 2)))).appearance
+    stored, flipped = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_flipped-up-down"]["scores"]
+    assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
+    assert (a.polarity, a.clear, a.orientation, a.trusted) == ("bone-bright", True, "flipped-up-down", False)
+    assert a.decided_by == "image (refined, on the image flipped up down)"
+    assert flipped["bone-bright"] >= stored["bone-bright"] + REFUSE_ORIENTATION_AT_CLICKS_GC
+    assert a.orientation_gc() == (flipped["bone-bright"], stored["bone-bright"])  # what the refusal's words quote
 
 
 @pytest.fixture(scope="module")
