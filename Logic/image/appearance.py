@@ -460,6 +460,26 @@ def image_polarity(scores: dict) -> tuple[str, float]:
     return ("bone-dark" if dark >= bright else "bone-bright"), float(abs(dark - bright))
 
 
+def displayed_without_clicks(stored: dict, turned: dict) -> tuple[str, dict] | None:
+    """Without clicks, the display an image is shown in, from its image-alone refinements
+    (``appearance_checks._orientation_without_clicks``): ``stored`` {polarity: best refined GC} on the image as
+    stored, ``turned`` {orientation o: {polarity: best refined GC}} on each rival display. For each o, with p its
+    leading polarity there (``image_polarity``), the lead
+
+        turned[o][p] - stored[p]
+
+    and the best lead reaching ``REFUSE_ORIENTATION_AT_CLICKS_GC`` gives (o, {"as-stored": stored[p], o: turned[o][p]});
+    else None."""
+    leads = {}
+    for o, scores in turned.items():
+        seen, _ = image_polarity(scores)
+        leads[o] = {"as-stored": float(stored[seen]), o: float(scores[seen])}
+    best = max(leads, key=lambda o: leads[o][o] - leads[o]["as-stored"], default=None)
+    if best is None or leads[best][best] - leads[best]["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
+        return None
+    return best, leads[best]
+
+
 def verdict_at_clicks(scores: dict, fits: dict, fitted_min_gc: float = FITTED_MIN_GC) -> tuple[str, float, bool]:
     """(polarity, lead, clear) from the scores at the clicks' poses (module docstring): the polarity whose best
     registration keeps the clicks fitted (``fits``: {polarity: bool}; both or neither: the higher GC), its GC

@@ -50,14 +50,13 @@ from carmreg.logic.image.appearance import (
     REFINED_ON_MIRROR,
     REFINED_ON_MIRROR_WITHOUT_SHADING,
     REFINED_WITHOUT_SHADING,
-    REFUSE_ORIENTATION_AT_CLICKS_GC,
     WITHOUT_SHADING_MM,
     Appearance,
     dark_storage,
     database_gc,
     database_orientation,
     decide_polarity,
-    image_polarity,
+    displayed_without_clicks,
     orientation_scores,
     refined_on_without_clicks,
 )
@@ -341,10 +340,10 @@ class AppearanceChecks:
         """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did
         not set the polarity): each polarity refined again on each rival display o of the image as on the image as
         stored (``polarity_from_image``): the mirror always, and the image flipped up-down or turned 180 degrees
-        where the database could not rule that out (``_rivals_without_clicks``). For each o, with p its leading
-        polarity, the lead ``GC_o(p) - GC_stored(p)`` (each the best refined GC under p); when the best lead reaches
-        ``REFUSE_ORIENTATION_AT_CLICKS_GC``, the display is that o: its verdict is taken (clear at
-        ``CLEAR_REFINED_GC``) and the image refused (``Appearance.set_orientation_without_clicks``). Otherwise the
+        where the database could not rule that out (``_rivals_without_clicks``). When one leads the stored image by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` under its own leading polarity (``image.appearance.
+        displayed_without_clicks``), the display is that one: its verdict is taken (clear at ``CLEAR_REFINED_GC``)
+        and the image refused (``Appearance.set_orientation_without_clicks``). Otherwise the
         appearance stays as it was, with the evidence recorded (``scores["without_clicks_on_mirror"]``,
         ``scores["without_clicks_on_<o>"]``). The levels stage keeps the image as stored (a refused image names no
         level)."""
@@ -352,19 +351,18 @@ class AppearanceChecks:
         if (stored is None or a.clear or p.polarity in POLARITIES
                 or (a.orientation == "as-stored" and a.orientation_clear)):
             return
-        judged, leads = {}, {}
+        judged = {}
         for o in _rivals_without_clicks(a.orientation_scores):
             judged[o] = self.polarity_from_image(state, gc_by_storage, o)
             a.scores[_without_clicks_key(o)] = judged[o].as_dict()
-            seen, _ = image_polarity(judged[o].scores)
-            leads[o] = {"as-stored": stored.scores[seen], o: judged[o].scores[seen]}
-        best = max(leads, key=lambda o: leads[o][o] - leads[o]["as-stored"], default=None)
-        if best is None or leads[best][best] - leads[best]["as-stored"] < REFUSE_ORIENTATION_AT_CLICKS_GC:
+        shown = displayed_without_clicks(stored.scores, {o: j.scores for o, j in judged.items()})
+        if shown is None:
             return
+        best, gc = shown
         again = self._polarity_again(state, judged[best].scores, refined_on_without_clicks(best))
         again.scores.update({k: v for k, v in a.scores.items() if k.startswith("without_clicks")})
         self._database_verdicts(state, again, gc_by_storage)
-        again.set_orientation_without_clicks(best, leads[best])
+        again.set_orientation_without_clicks(best, gc)
         self._use_appearance(state, again, gc_by_storage)
 
     def _polarity_without_shading(self, state: RegistrationState, gc_by_storage: dict) -> None:

@@ -123,7 +123,7 @@ HEAD_DOWN_COS = -0.5
 (+row) beyond which they run head-down: 120 degrees. A geometric bound, not a tuned one: the landmark fit turns
 the image in its plane at most 15 degrees from head up (``rx_deg``, ``fine.FineParameters.bounds``), and a run of
 adjacent vertebrae is never bent a further 105 degrees; a display turned 180 degrees or flipped up-down puts them
-near 180 degrees, a quarter turn near 90 (not caught here: the image's own orientation check judges it)."""
+near 180 degrees, a quarter turn near 90 (not caught here: ``across`` catches it)."""
 
 
 def _head_to_sacrum(clicks: Landmarks2D) -> tuple[str, str, np.ndarray] | None:

@@ -23,6 +23,7 @@ from carmreg.logic.image.appearance import (
     REFUSE_ORIENTATION_AT_CLICKS_GC,
     REFUSE_ORIENTATION_GC,
     decide_polarity,
+    displayed_without_clicks,
     verdict_at_clicks,
 )
 from carmreg.logic.image.prepare import attenuation
@@ -191,16 +192,16 @@ def mirrored_display(tmp_path_factory, drr_cache_dir):
     return ct, centroids, xray, np.asarray(truth["clicks_uv_px"], float), params
 
 
-def _mirrored_chest_scene(case: int, folder: Path, variant_name: str = "ii-dark-mirrored-png"):
+def _mirrored_chest_scene(case: int, folder: Path):
     """(CT, its centroids, X-ray, truth): the appearance benchmark's scene ``case`` drawn on the chest CT (no
-    ../shared needed) as ``variant_name`` shows it (by default the intensifier image shown mirrored left-right, bone
-    dark, 16-bit PNG), written to ``folder`` and read as ``carmreg register`` reads it."""
+    ../shared needed) as the intensifier image shown mirrored left-right, bone dark, 16-bit PNG, written to
+    ``folder`` and read as ``carmreg register`` reads it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
     import appearance as app
     import bench_appearance as bench
 
     maker = bench.CaseMaker(second_ct=False)
-    variant = app.VARIANTS[variant_name]
+    variant = app.VARIANTS["ii-dark-mirrored-png"]
     record = bench.write_variant(maker.scenes(case, {variant.detector})[variant.detector], variant, case, folder)
     detector = app.DETECTORS[variant.detector]
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
@@ -257,22 +258,27 @@ def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and
     assert "refined on the image as stored and mirrored left right" in a.summary()
 
 
-@pytest.mark.slow
-def test_without_clicks_a_display_flipped_up_down_is_refused_naming_the_flip(tmp_path, drr_cache_dir):
-    """The benchmark's flat-panel TIFF shown flipped up-down, bone bright (scene 502 drawn on the chest CT), no
-    clicks: the image alone leaves its polarity unclear, and the database cannot rule the flip out; refined on the
-    image flipped, bone bright leads clearly and agrees with the image far more than the stored image does under it:
-    refused as flipped up-down (stop 56; until then only the mirror was refined, and the answer was ambiguous with the
-    display as stored)."""
-    ct, centroids, xray, _ = _mirrored_chest_scene(502, tmp_path, "fp-bright-flipped-tiff")
-    params = RegistrationParameters(cache_dir=drr_cache_dir)
-    a = _appearance_found((ct, centroids, xray, None, params), Landmarks2D([], np.zeros((0, 2)))).appearance
-    stored, flipped = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_flipped-up-down"]["scores"]
-    assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
-    assert (a.polarity, a.clear, a.orientation, a.trusted) == ("bone-bright", True, "flipped-up-down", False)
-    assert a.decided_by == "image (refined, on the image flipped up down)"
-    assert flipped["bone-bright"] >= stored["bone-bright"] + REFUSE_ORIENTATION_AT_CLICKS_GC
-    assert a.orientation_gc() == (flipped["bone-bright"], stored["bone-bright"])  # what the refusal's words quote
+def test_without_clicks_the_display_is_the_rival_leading_the_stored_image_under_its_own_polarity():
+    """``displayed_without_clicks``, each part deciding (stop 56's turned displays: case 503's half turn refined 0.617
+    bone dark against 0.327 as stored): each rival is judged under the polarity leading on it, against the stored
+    image under that polarity; the best lead refuses at ``REFUSE_ORIENTATION_AT_CLICKS_GC``."""
+    stored = {"bone-dark": 0.327, "bone-bright": 0.403}
+    half_turn = {"bone-dark": 0.617, "bone-bright": 0.449}
+    assert displayed_without_clicks(stored, {MIRROR: {"bone-dark": 0.313, "bone-bright": 0.426},
+                                             "turned-180": half_turn}) == (
+        "turned-180", {"as-stored": 0.327, "turned-180": 0.617})
+    # judged under its own leading polarity: bone bright leads on the flip, 0.49 - 0.403 (not 0.49 - 0.327)
+    flip = {"bone-dark": 0.40, "bone-bright": 0.49}
+    assert displayed_without_clicks(stored, {"flipped-up-down": flip}) is None
+    refuse = REFUSE_ORIENTATION_AT_CLICKS_GC
+    for lead, taken in ((refuse + 1e-9, True), (refuse - 0.001, False)):
+        shown = displayed_without_clicks(stored, {"flipped-up-down": {"bone-dark": 0.40, "bone-bright": 0.403 + lead}})
+        assert (shown is not None and shown[0] == "flipped-up-down") == taken
+    # the best lead decides, whichever rival comes first; none judged, none taken
+    mirror = {"bone-dark": 0.327 + REFUSE_ORIENTATION_AT_CLICKS_GC + 0.01, "bone-bright": 0.2}
+    assert displayed_without_clicks(stored, {MIRROR: mirror, "turned-180": half_turn})[0] == "turned-180"
+    assert displayed_without_clicks(stored, {"turned-180": half_turn, MIRROR: mirror})[0] == "turned-180"
+    assert displayed_without_clicks(stored, {}) is None
 
 
 @pytest.fixture(scope="module")

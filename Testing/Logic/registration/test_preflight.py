@@ -18,7 +18,7 @@ DOWN_THE_IMAGE = [[300.0, 200.0], [305.0, 300.0], [312.0, 400.0]]  # (column, ro
 @pytest.mark.parametrize("uv, expected", [
     (DOWN_THE_IMAGE, None),                                         # head up, as acquired
     (DOWN_THE_IMAGE[::-1], ("T11", "L1")),                          # turned 180 degrees or flipped up-down
-    ([[200.0, 300.0], [300.0, 305.0], [400.0, 312.0]], None),       # a quarter turn: the image's own check
+    ([[200.0, 300.0], [300.0, 305.0], [400.0, 312.0]], None),       # a quarter turn: ``across``'s
 ])
 def test_named_clicks_run_head_down_only_when_the_head_lies_clearly_below_the_sacrum(uv, expected):
     assert head_down(Landmarks2D(["T11", "T12", "L1"], uv)) == expected
