@@ -201,11 +201,11 @@ def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _candidate_runs(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str) -> list[list[str]]:
-    """The CT levels the clicks could be, one list per labelling: the names given (named clicks), else every run of
-    as many adjacent CT levels as there are clicks (unnamed or partly named)."""
+    """The CT levels the clicks could be, head first, one list per labelling: the names given (named clicks), else
+    every run of as many adjacent CT levels as there are clicks (unnamed or partly named)."""
     if mode == "named":
         known = set(ct_landmarks.labels)
-        return [[lb for lb in clicks.labels if lb in known]]
+        return [sorted((lb for lb in clicks.labels if lb in known), key=level_index)]
     names, n = ct_level_names(ct_landmarks), len(clicks.labels)
     return [names[s:s + n] for s in range(len(names) - n + 1)]
 

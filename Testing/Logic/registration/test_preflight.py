@@ -63,6 +63,8 @@ def test_named_clicks_of_a_display_turned_a_quarter_are_refused_with_the_turn_th
     stored = orient_uv(np.array(DOWN_THE_IMAGE), stored_as, SIZE_PX)
     found = across(CT, Landmarks2D(NAMES, stored))
     assert found is not None and found.turn == turn_back and found.levels == ("T11", "L1")
+    shuffled = across(CT, Landmarks2D(NAMES[::-1], stored[::-1]))  # the same clicks listed sacrum first
+    assert (shuffled.turn, shuffled.levels) == (turn_back, ("T11", "L1"))
     assert found.angle_deg > 80.0
     np.testing.assert_allclose(orient_uv(stored, turn_back, SIZE_PX[::-1]), DOWN_THE_IMAGE)
     problem = preflight(CT, Landmarks2D(NAMES, stored)).problems
