@@ -17,14 +17,21 @@ from carmreg.logic.errors import LandmarkError
 from carmreg.logic.io.landmarks import LEVEL_NAMES, Landmarks2D, Landmarks3D, level_index
 
 
+def principal_axis(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The unit principal axis of (n >= 2, 2) points (the first right singular vector of the centred points, its sign
+    as the SVD gives it) and their elongation: the first singular value over the second (inf on a line)."""
+    singular, axes = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[1:]
+    return axes[0], (np.inf if singular[1] == 0.0 else float(singular[0] / singular[1]))
+
+
 def order_along_spine(uv_px: np.ndarray) -> np.ndarray:
-    """Click indices head to sacrum: sorted along the clicks' principal axis, oriented so that the image row
-    grows (rows run toward the patient's feet, CONVENTIONS.md). Ties keep the given order."""
+    """Click indices head to sacrum: sorted along the clicks' principal axis (``principal_axis``), oriented so that
+    the image row grows (rows run toward the patient's feet, CONVENTIONS.md). Ties keep the given order."""
     uv = np.asarray(uv_px, float).reshape(-1, 2)
     if len(uv) < 2:
         return np.arange(len(uv))
     centred = uv - uv.mean(axis=0)
-    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    axis = principal_axis(uv)[0]
     if axis[1] < 0 or (axis[1] == 0 and axis[0] < 0):
         axis = -axis
     return np.argsort(centred @ axis, kind="stable")

@@ -38,7 +38,12 @@ from carmreg.logic.io.landmarks import (
     spine_order_warnings,
 )
 from carmreg.logic.io.xray import XrayImage
-from carmreg.logic.registration.labellings import check_labelling_possible, ct_level_names, identifiable_clicks
+from carmreg.logic.registration.labellings import (
+    check_labelling_possible,
+    ct_level_names,
+    identifiable_clicks,
+    principal_axis,
+)
 
 MIN_CLICKS = 3
 """X-ray clicks needed (named or not); zero clicks = the levels from the image alone."""
@@ -183,16 +188,10 @@ class Across:
     turn: str | None
 
 
-def _axis(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """The unit principal axis of 2-D points and its elongation (first over second singular value, inf on a line)."""
-    singular, axes = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[1:]
-    return axes[0], (np.inf if singular[1] == 0.0 else float(singular[0] / singular[1]))
-
-
 def _drawn_course(points_lps_mm: np.ndarray) -> np.ndarray:
     """The axis of CT points as an AP view shown head up draws them: (column, row) ~ (L, -S) (``geometry.camera``:
     columns toward the patient's left, rows toward the feet), perspective and the C-arm's small turns left out."""
-    return _axis(np.stack([points_lps_mm[:, 0], -points_lps_mm[:, 2]], axis=1))[0]
+    return principal_axis(np.stack([points_lps_mm[:, 0], -points_lps_mm[:, 2]], axis=1))[0]
 
 
 def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -219,7 +218,7 @@ def across(ct_landmarks: Landmarks3D, clicks: Landmarks2D, mode: str | None = No
     uv = np.asarray(clicks.uv_px, float).reshape(-1, 2)
     if len(uv) < 2:
         return None
-    axis, elongation = _axis(uv)
+    axis, elongation = principal_axis(uv)
     if elongation < ELONGATED:
         return None
     points = dict(zip(ct_landmarks.labels, np.asarray(ct_landmarks.points_lps_mm, float), strict=True))

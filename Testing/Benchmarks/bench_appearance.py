@@ -49,6 +49,7 @@ from second_ct import CENTROIDS_PATH, CT_RELATIVE_PATH, default_shared_dir, load
 
 from carmreg.logic.geometry.camera import POSE_NAMES, project  # noqa: E402
 from carmreg.logic.geometry.distortion import RadialDistortion  # noqa: E402
+from carmreg.logic.image.turn import UNDONE_BY  # noqa: E402
 from carmreg.logic.io.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from carmreg.logic.io.landmarks import Landmarks2D  # noqa: E402
 from carmreg.logic.io.xray import load_xray  # noqa: E402
@@ -396,7 +397,7 @@ def summarize(rows: list[dict], which: str = "report") -> str:
                       f"CONFIDENT, {wrong} CONFIDENT (no clicks: proposed) and wrong; refused as a display turned "
                       f"(no level named): {sum(_refused_display(r) for r in runs)}; refused before any stage for "
                       f"their clicks (head-down or across the image): {len(early)}, naming the turn back "
-                      f"({TURNED_BACK_BY[turn]}) {sum(TURNED_BACK_BY[turn] in r['stderr'] for r in early)}."]
+                      f"({UNDONE_BY[turn]}) {sum(UNDONE_BY[turn] in r['stderr'] for r in early)}."]
     turned = [r for r in sel if r.get("turned")]
     if turned:
         wrong = sum(r["status"] in ("confident", "proposed") and not r["answer_right"] for r in turned)
@@ -433,10 +434,6 @@ def _refused_display(row: dict) -> bool:
     """Whether the run's X-ray was refused for its display: matched best mirrored or turned (result.json
     ``appearance.orientation``, ``outcome.refused_display``)."""
     return (row.get("appearance") or {}).get("orientation", "as-stored") != "as-stored"
-
-
-TURNED_BACK_BY = {"turned-180": "turned-180", "flipped-up-down": "flipped-up-down", "turned-90": "turned-270"}
-"""The ``--orient-xray`` turn that shows each of ``appearance.DISPLAY_TURNS``'s displays head up again."""
 
 
 def _refused_for_the_clicks(row: dict) -> bool:

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Benchmarks"))
 import appearance as app  # noqa: E402
 
 from carmreg.logic.geometry.camera import CarmGeometry, CarmPose, project  # noqa: E402
+from carmreg.logic.image.turn import ORIENTATIONS, UNDONE_BY  # noqa: E402
 from carmreg.logic.io.xray import load_xray  # noqa: E402
 
 BONE = (slice(30, 50), slice(44, 52))     # rows, columns of one bone block
@@ -166,3 +167,7 @@ def test_a_turned_display_turns_image_truth_and_clicks_by_one_pixel_map(display_
         uv_shown = project(np.array(shown["projection_matrix"]), np.array([point]))[0]
         assert uv_shown == pytest.approx(app.displayed_uv(uv_plain, F)[0])
     np.testing.assert_allclose(shown["clicks_uv_px"], app.displayed_uv(np.array(truth["clicks_uv_px"]), F))
+    # the benchmark's turn is CarmReg's turn of the same name, so ``turn.UNDONE_BY`` names the one that undoes it
+    probe = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_array_equal(app.turn_display(probe, display_turn), ORIENTATIONS[display_turn](probe))
+    np.testing.assert_array_equal(ORIENTATIONS[UNDONE_BY[display_turn]](app.turn_display(probe, display_turn)), probe)
