@@ -219,6 +219,7 @@ def _appearance_found(mirrored_display, clicks: Landmarks2D):
 
 
 @pytest.mark.slow
+@pytest.mark.benchmark_case
 def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_from_the_mirror(sample_case_dir,
                                                                                               mirrored_display):
     """The mirrored display with three unnamed clicks: where the clicks put the CT as stored, neither polarity
@@ -240,6 +241,7 @@ def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_fr
 
 
 @pytest.mark.slow
+@pytest.mark.benchmark_case
 def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and_is_refused(sample_case_dir,
                                                                                           mirrored_display):
     """The same mirrored display, no clicks. Refined on the image as stored, the polarity is unclear (stop 16's
@@ -427,6 +429,7 @@ def mirrored_names_one_level_off(tmp_path_factory, drr_cache_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.benchmark_case
 def test_a_mirrored_display_taken_as_stored_under_the_wrong_polarity_is_found_under_the_other(
         mirrored_names_one_level_off):
     """The first verdict at the clicks is clear for the wrong polarity by less than ``CHECKED_CLICKS_GC`` and the

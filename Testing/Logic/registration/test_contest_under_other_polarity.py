@@ -59,6 +59,7 @@ def _levels_watching_the_second_contest(logic, state, cancel: bool) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.benchmark_case
 def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under_the_other(clicked_case):
     """Case 205's intensifier image, bone dark, log storage, 16-bit PNG, unnamed clicks: judged at the clicks on
     T4-T6 ... T8-T10 (all wrong) it is taken bone bright, unclear; the contest on the inverted image is won by T1-T3
@@ -90,6 +91,7 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
 
 
 @pytest.mark.slow
+@pytest.mark.benchmark_case
 def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_nothing_but_its_record(clicked_case):
     """Case 201's mirrored display (chest, T7-T9 clicked, unnamed): bone dark, unclear at the clicks; the contest's
     leader before its searches for confidence, T4-T6, explains the image poorly (GC 0.29), so the contest runs

@@ -10,6 +10,8 @@ found so, outside the labellings the polarity was judged on, is judged at the cl
 import pytest
 from appearance_cases import appearance_case_registrar, copied
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.fixture(scope="module")
 def chest_case(tmp_path_factory, drr_cache_dir):

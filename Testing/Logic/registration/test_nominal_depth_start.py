@@ -13,6 +13,8 @@ from appearance_cases import appearance_case_registrar, copied
 
 from carmreg.logic.geometry.camera import project
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.fixture(scope="module")
 def registered(tmp_path_factory, drr_cache_dir):

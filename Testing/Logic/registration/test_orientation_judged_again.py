@@ -11,6 +11,8 @@ import carmreg.logic.registration.click_orientation as click_orientation
 from carmreg.logic.image.appearance import CLOSE_ORIENTATION_AT_CLICKS_GC, REFUSE_ORIENTATION_AT_CLICKS_GC
 from carmreg.logic.registration.click_orientation import MIRROR
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.fixture(scope="module")
 def clicked_case(tmp_path_factory, drr_cache_dir):

@@ -16,6 +16,8 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_CLICKS_WITHOUT_SHADING,
 )
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.fixture(scope="module")
 def registered(tmp_path_factory, drr_cache_dir):

@@ -12,6 +12,8 @@ from carmreg.logic.image.appearance import (
     WITHOUT_SHADING_MM,
 )
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.fixture(scope="module")
 def benchmark_case(tmp_path_factory, drr_cache_dir):

@@ -8,6 +8,8 @@ from appearance_cases import appearance_case_registrar
 
 from carmreg.logic.image.appearance import STORAGE_FROM_FILE
 
+pytestmark = pytest.mark.benchmark_case  # the tier of benchmark cases (pyproject.toml, scripts/test.sh)
+
 
 @pytest.mark.slow
 def test_a_file_stating_linear_intensity_is_converted_so_and_named_right(tmp_path_factory, drr_cache_dir):
