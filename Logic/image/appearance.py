@@ -160,7 +160,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to, rank_image
-from carmreg.logic.image.turn import ORIENTATIONS
+from carmreg.logic.image.turn import JUDGED, ORIENTATIONS
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
@@ -395,7 +395,7 @@ class Appearance:
         shown = self.orientation.replace("-", " ")
         if turned != "as-stored":
             shown = ("as turned" if self.orientation == "as-stored" else f"{shown} of that") + \
-                f" (the file turned {turned.replace('-', ' ')} as asked)"
+                f" (the file shown {turned.replace('-', ' ')} as asked)"
         return (f"{self.note}; stored as {self.storage.replace('-', ' ')}{stated}; matches the CT {shown} "
                 f"({where}{how})")
 
@@ -436,17 +436,17 @@ def dark_storage(gc_by_storage: dict, stated: str | None = None) -> str:
 
 def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarray, factor: int,
                        bone_dark: bool) -> dict:
-    """score(o) for every shape-keeping orientation o (module docstring); ``drrs_grid``: (ny, nz, rows, cols)."""
+    """score(o) for every orientation o of ``turn.JUDGED`` that keeps the image's shape (module docstring);
+    ``drrs_grid``: (ny, nz, rows, cols)."""
     half = drrs_grid[::2, ::2]
     rows, cols = half.shape[2:]
     flat = half.reshape(-1, rows, cols)
     sign = -1.0 if bone_dark else 1.0
     ranked = rank_image(pixels, mask)
     out = {}
-    for name, turn in ORIENTATIONS.items():
-        image, field = turn(ranked), turn(mask)
-        if image.shape != ranked.shape or (name.startswith("turned-") and name != "turned-180"
-                                           and ranked.shape[0] != ranked.shape[1]):
+    for name in JUDGED:
+        image, field = ORIENTATIONS[name](ranked), ORIENTATIONS[name](mask)
+        if image.shape != ranked.shape:  # a quarter turn of an image that is not square
             continue
         coarse_mask = bin_mask_to(np.ascontiguousarray(field), factor, (rows, cols))
         g = similarity("gc", bin_image_to(np.ascontiguousarray(image), factor, (rows, cols)), flat, coarse_mask)

@@ -26,7 +26,21 @@ from carmreg.logic.io.xray_image import XrayImage
 
 ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, ::-1],
                 "flipped-up-down": lambda a: a[::-1], "turned-180": lambda a: a[::-1, ::-1],
-                "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1)}
+                "turned-90": lambda a: np.rot90(a, 1), "turned-270": lambda a: np.rot90(a, -1),
+                "turned-90-and-mirrored": lambda a: np.rot90(a, 1)[:, ::-1],
+                "turned-270-and-mirrored": lambda a: np.rot90(a, -1)[:, ::-1]}
+"""The eight orientations an image keeps its pixel grid in (the turns of a square and their mirrors; np.rot90 turns
+counter-clockwise). The last two transpose the image: ``turned-270-and-mirrored`` about its main diagonal,
+``turned-90-and-mirrored`` about the other. Only ``JUDGED`` are compared with the CT by the image checks."""
+
+QUARTER_TURNED = ("turned-90", "turned-270", "turned-90-and-mirrored", "turned-270-and-mirrored")
+"""The orientations that swap the image's columns and rows (and so its size and pixel spacing)."""
+
+JUDGED = ("as-stored", "mirrored-left-right", "flipped-up-down", "turned-180", "turned-90", "turned-270")
+"""The orientations the image checks compare with the CT (``appearance.orientation_scores``): a display mirrored,
+flipped or turned. A transposed display (a quarter turn and a mirror) is not judged from the image: with clicks the
+preflight refuses it as turned a quarter (``preflight.across``), and once turned back the mirror is found; the two
+transposing turns are there for the user to turn such a file back in one step (``composed`` names them)."""
 
 
 def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndarray:
@@ -36,7 +50,8 @@ def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndar
     u, v = uv[:, 0], uv[:, 1]
     right, bottom = size_px[0] - 1.0 - u, size_px[1] - 1.0 - v
     turned = {"as-stored": (u, v), "mirrored-left-right": (right, v), "flipped-up-down": (u, bottom),
-              "turned-180": (right, bottom), "turned-90": (v, right), "turned-270": (bottom, u)}[name]
+              "turned-180": (right, bottom), "turned-90": (v, right), "turned-270": (bottom, u),
+              "turned-90-and-mirrored": (bottom, right), "turned-270-and-mirrored": (v, u)}[name]
     return np.stack(turned, axis=1)
 
 
@@ -44,15 +59,13 @@ TURNS = tuple(name for name in ORIENTATIONS if name != "as-stored")
 """The orientations a user may have the X-ray turned by (``--orient-xray``, the window's and the Slicer module's
 X-ray orientation)."""
 
-UNDONE_BY = {"as-stored": "as-stored", "mirrored-left-right": "mirrored-left-right",
-             "flipped-up-down": "flipped-up-down", "turned-180": "turned-180", "turned-90": "turned-270",
-             "turned-270": "turned-90"}
+UNDONE_BY = {**{name: name for name in ORIENTATIONS}, "turned-90": "turned-270", "turned-270": "turned-90"}
 """The orientation that turns each orientation's image back to the image as stored (a quarter turn: the other one;
-every other orientation undoes itself)."""
+every other orientation, the transposes included, undoes itself)."""
 
 
 def turned_size(size_px: tuple[int, int], name: str) -> tuple[int, int]:
-    """(columns, rows) of an image of ``size_px`` (columns, rows) turned by ``name``: swapped by a quarter turn."""
+    """(columns, rows) of an image of ``size_px`` (columns, rows) turned by ``name``: swapped by ``QUARTER_TURNED``."""
     return _turned_pair(size_px, name)
 
 
@@ -62,13 +75,13 @@ def stored_uv(uv_px: np.ndarray, name: str, stored_size_px: tuple[int, int]) -> 
     return orient_uv(uv_px, UNDONE_BY[name], turned_size(stored_size_px, name))
 
 
-def composed(first: str, then: str) -> str | None:
-    """The orientation that turns an image as ``first`` and then ``then`` do, one after the other; None when that is
-    a transpose (a quarter turn and a mirror), which no ``ORIENTATIONS`` entry is."""
+def composed(first: str, then: str) -> str:
+    """The orientation that turns an image as ``first`` and then ``then`` do, one after the other (the eight
+    ``ORIENTATIONS`` are closed under it: a quarter turn and a mirror make a transpose)."""
     probe = np.arange(6).reshape(2, 3)
     want = ORIENTATIONS[then](ORIENTATIONS[first](probe))
-    return next((name for name, turn in ORIENTATIONS.items()
-                 if turn(probe).shape == want.shape and np.array_equal(turn(probe), want)), None)
+    return next(name for name, turn in ORIENTATIONS.items()
+                if turn(probe).shape == want.shape and np.array_equal(turn(probe), want))
 
 
 def stored_image(image: np.ndarray, name: str) -> np.ndarray:
@@ -78,10 +91,10 @@ def stored_image(image: np.ndarray, name: str) -> np.ndarray:
 
 
 def _turned_pair(pair, name: str) -> tuple | None:
-    """A (column, row) pair (size, pixel spacing) of the image turned by ``name``: swapped by a quarter turn."""
+    """A (column, row) pair (size, pixel spacing) of the image turned by ``name``: swapped by ``QUARTER_TURNED``."""
     if pair is None:
         return None
-    return tuple(reversed(pair)) if name in ("turned-90", "turned-270") else tuple(pair)
+    return tuple(reversed(pair)) if name in QUARTER_TURNED else tuple(pair)
 
 
 def turned_intrinsics(intr: CarmIntrinsics, name: str) -> CarmIntrinsics:

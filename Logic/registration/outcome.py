@@ -95,7 +95,7 @@ def refused_display(a, turned: str = "as-stored") -> str:
     if a is None or a.orientation == "as-stored":
         return ""
     best, given = a.orientation_gc()
-    as_given = "as stored" if turned == "as-stored" else f"turned {turned.replace('-', ' ')} as asked"
+    as_given = "as stored" if turned == "as-stored" else f"shown {turned.replace('-', ' ')} as asked"
     advice = turn_advice(advised_turn(a, turned))
     return (f"the X-ray matches the CT best {a.orientation.replace('-', ' ')} (GC {best:.2f} against {given:.2f} "
             f"{as_given}): the display is mirrored or rotated; export the image as acquired (head up, patient's "
@@ -105,7 +105,8 @@ def refused_display(a, turned: str = "as-stored") -> str:
 def advised_turn(a, turned: str = "as-stored") -> str | None:
     """The turn of the file (``image.turn.ORIENTATIONS``) that shows it as the CT matches it, when appearance ``a``
     refuses the display (``refused_display``): the user's ``turned``, then the one the image matches in
-    (``image.turn.composed``). None when the display is not refused, or when that is a transpose."""
+    (``image.turn.composed``; a quarter turn and a mirror make a transpose, which the user can turn back too). None
+    when the display is not refused."""
     if a is None or a.orientation == "as-stored":
         return None
     return composed(turned, a.orientation)

@@ -50,7 +50,9 @@ from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParame
 CAMERA_TURNS = {"mirrored-left-right": np.diag([-1.0, 1.0, 1.0]), "flipped-up-down": np.diag([1.0, -1.0, 1.0]),
                 "turned-180": np.diag([-1.0, -1.0, 1.0]),
                 "turned-90": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-                "turned-270": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}
+                "turned-270": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                "turned-90-and-mirrored": np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                "turned-270-and-mirrored": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}
 
 
 @pytest.mark.parametrize("name", list(ORIENTATIONS))
@@ -61,6 +63,10 @@ def test_orient_uv_moves_a_pixel_where_the_array_orientation_moves_it(name):
         image[v, u] = 1
         row, col = np.argwhere(ORIENTATIONS[name](image))[0]
         assert orient_uv(np.array([[u, v]]), name, (7, 5))[0].tolist() == [col, row]
+
+
+def test_every_turn_has_its_camera_turn():
+    assert set(CAMERA_TURNS) == set(ORIENTATIONS) - {"as-stored"}
 
 
 @pytest.mark.parametrize("name", list(CAMERA_TURNS))
