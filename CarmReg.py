@@ -263,6 +263,14 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
                                "how clearly; set it only to override")
         ui.polarity.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("X-ray polarity:", ui.polarity)
+        ui.storage = qt.QComboBox()
+        for key in slicer_nodes().STORAGE_CHOICES:
+            ui.storage.addItem({"auto": "as the file states, else found"}.get(key, key.replace("-", " ")), key)
+        ui.storage.toolTip = ("How a bone-dark X-ray stores its values (linear intensity: the detector's own; log "
+                              "display: processed). CarmReg takes what the DICOM states, else finds it from the image; "
+                              "set it only to override")
+        ui.storage.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
+        form.addRow("X-ray storage:", ui.storage)
         ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
         ui.checkLevels.connect("toggled(bool)", self.updateParameterNodeFromGUI)
         form.addRow(ui.checkLevels)
@@ -325,7 +333,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.sod.value = float(node.GetParameter("SodMm") or 0)
             self.ui.distortion.value = float(node.GetParameter("DistortionMm") or 0)
             self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
-            for combo, name, default in ((self.ui.polarity, "Polarity", "auto"),
+            for combo, name, default in ((self.ui.polarity, "Polarity", "auto"), (self.ui.storage, "Storage", "auto"),
                                          (self.ui.orientation, "XrayOrientation", "as-stored")):
                 combo.setCurrentIndex(max(combo.findData(node.GetParameter(name) or default), 0))
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
@@ -348,7 +356,8 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         node.SetParameter("SodMm", f"{self.ui.sod.value:g}")
         node.SetParameter("DistortionMm", f"{self.ui.distortion.value:g}")
         node.SetParameter("Metric", self.ui.metric.currentText)
-        for combo, name in ((self.ui.polarity, "Polarity"), (self.ui.orientation, "XrayOrientation")):
+        for combo, name in ((self.ui.polarity, "Polarity"), (self.ui.storage, "Storage"),
+                            (self.ui.orientation, "XrayOrientation")):
             node.SetParameter(name, combo.itemData(combo.currentIndex))
         node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")
         node.SetParameter("EstimatePincushion", "true" if self.ui.estimatePincushion.checked else "false")

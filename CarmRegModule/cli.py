@@ -168,6 +168,7 @@ def _window_geometry(args) -> dict:
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
+    from carmreg.logic.image.prepare import STORAGES
     from carmreg.logic.similarity.metrics import METRICS
 
     p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
@@ -179,6 +180,10 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--polarity", choices=("auto", "bone-dark", "bone-bright"), default="auto",
                    help="how the X-ray shows bone (default auto: found from the image against the CT's DRRs and "
                    "recorded in result.json; set it only to override)")
+    p.add_argument("--storage", choices=("auto", *STORAGES), default="auto",
+                   help="how a bone-dark X-ray stores its values: linear-intensity (the detector's intensity, "
+                   "converted with -log) or log-display (already log-like); default auto: as its DICOM states, else "
+                   "found from the image against the CT's DRRs and recorded in result.json; set it only to override")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -194,7 +199,7 @@ def _parameters(args):
         raise CarmRegError(f"--cache-dir {args.cache_dir}: this is a file, not a folder; give a folder for the "
                            "DRR database cache (created if missing), or --no-cache")
     params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics, polarity=args.polarity,
-                                    level_check=not args.no_level_check,
+                                    storage=args.storage, level_check=not args.no_level_check,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
     params.fine.seed = args.seed
     return params

@@ -295,7 +295,10 @@ def test_an_xray_volume_stored_mirrored_registers_turned_back_and_its_outputs_la
         mrml, sample_nodes, sample_registered, sample_case_dir, drr_cache_dir, tmp_path):
     """The sample X-ray written mirrored (the same header) and loaded by Slicer's reader, its clicks placed where
     that volume shows them; with XrayOrientation = mirrored-left-right (and a polarity given) it registers as the
-    acquisition does, and the DRR, overlay and projected levels come back onto the mirrored volume's own grid."""
+    acquisition does, and the DRR, overlay and projected levels come back onto the mirrored volume's own grid. A
+    storage given (the one the image gives) is taken as set; a polarity, storage or orientation not offered is refused
+    in words."""
+    from carmreg.logic.image.appearance import STORAGE_FROM_USER
     from carmreg.logic.io.xray import load_xray
     from carmreg.logic.io.xray_write import write_xray_dicom
 
@@ -319,10 +322,12 @@ def test_an_xray_volume_stored_mirrored_registers_turned_back_and_its_outputs_la
     parameters.SetParameter("CheckLevels", "false")
     parameters.SetParameter("XrayOrientation", "mirrored-left-right")
     parameters.SetParameter("Polarity", "bone-dark")
+    parameters.SetParameter("Storage", expected_storage := sample_registered[0].appearance.storage)  # as found
     result, _, _, xray = nodes.register_nodes(parameters, cache_dir=drr_cache_dir)
     expected = sample_registered[0]
     np.testing.assert_allclose(result.projection_matrix, expected.projection_matrix, rtol=1e-6, atol=1e-6)
     assert result.appearance.polarity == "bone-dark" and result.appearance.decided_by == "user"
+    assert (result.appearance.storage, result.appearance.storage_from) == (expected_storage, STORAGE_FROM_USER)
     np.testing.assert_array_equal(xray.pixels, acquired.pixels)
     nodes.show_result(scene, parameters, result, xray)
     drr = nodes.voxels_kji(parameters.GetNodeReference("DRR"))[0]
@@ -335,6 +340,9 @@ def test_an_xray_volume_stored_mirrored_registers_turned_back_and_its_outputs_la
                                    (matrix @ [cols - 1 - u, v, 0.0, 1.0])[:3], atol=1e-6)
     parameters.SetParameter("XrayOrientation", "sideways")
     with pytest.raises(ValueError, match="XrayOrientation = 'sideways'; choose one of as-stored"):
+        nodes.register_nodes(parameters)
+    parameters.SetParameter("Storage", "raw")
+    with pytest.raises(ValueError, match="Storage = 'raw'; choose one of auto, linear-intensity, log-display"):
         nodes.register_nodes(parameters)
 
 

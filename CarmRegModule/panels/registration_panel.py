@@ -20,6 +20,11 @@ from qtpy import QtCore, QtWidgets
 
 from carmreg.logic.report.style import names_shown, status_ink
 
+STORAGE_CHOICES = (("auto", "As the file states, else found"), ("log-display", "Log display (processed)"),
+                   ("linear-intensity", "Linear intensity (raw detector)"))
+"""The X-ray storage settings (``RegistrationParameters.storage``: auto or one of ``image.prepare.STORAGES``) and
+their words; a test pins the keys to ``STORAGES``."""
+
 STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",
                 "fine": "Fitting the clicked centres", "refine": "Refining on the image",
@@ -148,6 +153,15 @@ class RegistrationPanel(QtWidgets.QWidget):
                                        "and says how clearly (Check step); set it only to override")
         form.addRow("X-ray polarity", self.polarity_combo)
         self.polarity_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        self.storage_combo = QtWidgets.QComboBox()
+        self.storage_combo.setObjectName("xray_storage")
+        for key, text in STORAGE_CHOICES:
+            self.storage_combo.addItem(text, key)
+        self.storage_combo.setToolTip("How a bone-dark X-ray stores its values. CarmReg takes what the DICOM states, "
+                                      "else finds it from the image against the CT (Check step); set it only to "
+                                      "override")
+        form.addRow("X-ray storage", self.storage_combo)
+        self.storage_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
         self.pincushion_check = QtWidgets.QCheckBox("Estimate an intensifier's pincushion from the image")
         self.pincushion_check.setChecked(True)
         self.pincushion_check.setToolTip("On a round field (an image intensifier's) with no Pincushion given (C-arm "
@@ -209,7 +223,8 @@ class RegistrationPanel(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
         return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
-                "polarity": self.polarity_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked(),
+                "polarity": self.polarity_combo.currentData() or "auto",
+                "storage": self.storage_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked(),
                 "estimate_pincushion": self.pincushion_check.isChecked()}
 
     def set_estimate_pincushion(self, on) -> None:
@@ -226,6 +241,10 @@ class RegistrationPanel(QtWidgets.QWidget):
     def set_polarity(self, key) -> None:
         """Choose the X-ray polarity setting (``auto``, ``bone-dark``, ``bone-bright``; anything else: auto)."""
         self.polarity_combo.setCurrentIndex(max(self.polarity_combo.findData(key if isinstance(key, str) else ""), 0))
+
+    def set_storage(self, key) -> None:
+        """Choose the X-ray storage setting (``auto`` or one of ``image.prepare.STORAGES``; anything else: auto)."""
+        self.storage_combo.setCurrentIndex(max(self.storage_combo.findData(key if isinstance(key, str) else ""), 0))
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""
@@ -277,6 +296,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.cancel_button.setEnabled(running)
         self.metric_combo.setEnabled(not running)
         self.polarity_combo.setEnabled(not running)
+        self.storage_combo.setEnabled(not running)
         self.pincushion_check.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 

@@ -52,12 +52,14 @@ Storage
 -------
 Bone-dark images are converted to attenuation either as linear intensity, ``L = -log(S / S_ref)``, or as an
 already log-like display, ``L = (S_ref - S) / range``. A file that states it stores the intensity itself (DICOM
-PixelIntensityRelationship LIN, sign +1: ``XrayImage.stated_storage``) is converted as linear intensity; otherwise
-the conversion whose best DRR agrees more (max GC over the database) is used (``dark_storage``). Both scores are
-recorded, and ``Appearance.storage_from`` says which rule decided. The file's word wins because the image's is
-weak: on a lumbar flat-panel image stored LIN (report case 131 of the appearance benchmark, second CT) the log
-display agreed more, 0.52 against 0.38, and the refined agreement then reached only 0.67 (0.86 on the same
-scene stored log), the contest's winner a wrong labelling kept from confidence only by the orientation check.
+PixelIntensityRelationship LIN, sign +1: ``XrayImage.stated_storage``) is converted as linear intensity, and one
+whose storage the user set (``RegistrationParameters.storage``: ``--storage``, the window's and the Slicer module's
+X-ray storage) as they set it (``stated_storage``); otherwise the conversion whose best DRR agrees more (max GC over
+the database) is used (``dark_storage``). Both scores are recorded, and ``Appearance.storage_from`` says which rule
+decided. The file's word wins because the image's is weak: on a lumbar flat-panel image stored LIN (report case 131
+of the appearance benchmark, second CT) the log display agreed more, 0.52 against 0.38, and the refined agreement
+then reached only 0.67 (0.86 on the same scene stored log), the contest's winner a wrong labelling kept from
+confidence only by the orientation check.
 Bone-bright images are attenuation-like by construction and are used linearly, ``L = (S - S_lo) / range``.
 
 Orientation
@@ -234,7 +236,10 @@ def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -
 
 STORAGE_FROM_IMAGE = "image (the conversion whose best DRR agrees more)"
 STORAGE_FROM_FILE = "file (DICOM PixelIntensityRelationship LIN, sign +1: linear intensity)"
+STORAGE_FROM_USER = "user (set, not found)"
 """``Appearance.storage_from``: how a bone-dark image's storage was decided (``dark_storage``)."""
+STORAGE_NOTES = {STORAGE_FROM_FILE: " (as the file states)", STORAGE_FROM_USER: " (as set)"}
+"""What ``Appearance.summary`` says after the storage, by ``storage_from`` (nothing when the image decided)."""
 
 
 @dataclass
@@ -260,7 +265,7 @@ class Appearance:
     orientation_decided_by: str = "image (database)"  # or "image (at the clicks' poses)", or on the mirror
     orientation_at_clicks: dict | None = None  # the evidence at the clicks' poses (``click_orientation``)
     orientation_without_clicks: dict | None = None  # no clicks: {orientation: refined GC} that took another one
-    storage_from: str = STORAGE_FROM_IMAGE  # or the file's statement (``XrayImage.stated_storage``)
+    storage_from: str = STORAGE_FROM_IMAGE  # or the file's statement, or the user's (``stated_storage``)
 
     @property
     def bone_dark(self) -> bool:
@@ -337,13 +342,14 @@ class Appearance:
                      f"{first.polarity} (taken first, by a lead of {first.clarity_gc:.3f}) only at {taken_gc:.3f}: "
                      "the polarity and the display were found together, neither clear on its own")
 
-    def set_storage(self, gc_by_storage: dict, stated: str | None = None) -> None:
-        """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the one the file
-        states (``stated``), else the better-agreeing one (``dark_storage``; module docstring)."""
+    def set_storage(self, gc_by_storage: dict, stated: str | None = None, stated_by: str = STORAGE_FROM_FILE) -> None:
+        """Record the best GC of each conversion (``database_gc``) and, for a bone-dark image, use the one stated
+        (``stated``, by ``stated_by``: the file or the user; ``stated_storage``), else the better-agreeing one
+        (``dark_storage``; module docstring)."""
         self.scores["storage"] = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
         if self.bone_dark:
             self.storage = dark_storage(gc_by_storage, stated)
-            self.storage_from = STORAGE_FROM_IMAGE if stated is None else STORAGE_FROM_FILE
+            self.storage_from = STORAGE_FROM_IMAGE if stated is None else stated_by
 
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""
@@ -391,7 +397,7 @@ class Appearance:
                  if self.orientation_without_clicks is not None else
                  "on the DRR database")
         how = ", unclear" if self.orientation == "as-stored" and not self.orientation_clear else ""
-        stated = " (as the file states)" if self.storage_from == STORAGE_FROM_FILE else ""
+        stated = STORAGE_NOTES.get(self.storage_from, "")
         shown = self.orientation.replace("-", " ")
         if turned != "as-stored":
             shown = ("as turned" if self.orientation == "as-stored" else f"{shown} of that") + \
@@ -426,9 +432,18 @@ def database_gc(pixels: np.ndarray, mask: np.ndarray, drrs: np.ndarray, factor: 
             dict(zip(STORAGES, stored, strict=True)))
 
 
+def stated_storage(xray, storage: str = "auto") -> tuple[str | None, str]:
+    """(storage, by whom) a bone-dark image's storage is stated: the user's ``storage`` unless "auto"
+    (``RegistrationParameters.storage``), else the file's (``XrayImage.stated_storage``; None: not stated, the image
+    decides)."""
+    if storage != "auto":
+        return storage, STORAGE_FROM_USER
+    return xray.stated_storage, STORAGE_FROM_FILE
+
+
 def dark_storage(gc_by_storage: dict, stated: str | None = None) -> str:
-    """The conversion of a bone-dark image: the one the file states (``stated``, ``XrayImage.stated_storage``), else
-    the one whose best DRR agrees more (``database_gc``; module docstring)."""
+    """The conversion of a bone-dark image: the one stated (``stated``: ``stated_storage``), else the one whose best
+    DRR agrees more (``database_gc``; module docstring)."""
     if stated is not None:
         return stated
     return max(gc_by_storage, key=lambda k: float(np.max(gc_by_storage[k])))

@@ -59,6 +59,7 @@ from carmreg.logic.image.appearance import (
     displayed_without_clicks,
     orientation_scores,
     refined_on_without_clicks,
+    stated_storage,
 )
 from carmreg.logic.image.prepare import attenuation, bin_image_to, bin_mask_to
 from carmreg.logic.image.shading import shading_remover
@@ -105,6 +106,11 @@ columns and rows, so the database's DRRs could not seed it); the mirror always, 
 def _rivals_without_clicks(database_scores: dict) -> list[str]:
     """Of ``WITHOUT_CLICKS_TURNS``, the mirror and those the database could not rule out (``rival_orientations``)."""
     return [o for o in rival_orientations(database_scores) if o in WITHOUT_CLICKS_TURNS]
+
+
+def _stated(state: RegistrationState) -> tuple[str | None, str]:
+    """(storage, by whom) the X-ray's storage is stated: the user's setting, else its file's (``stated_storage``)."""
+    return stated_storage(state.xray, state.parameters.storage)
 
 
 def _without_clicks_key(orientation: str) -> str:
@@ -199,7 +205,7 @@ class AppearanceChecks:
             a.scores["at_clicks"] = state.click_polarity.as_dict()
         if state.image_polarity is not None:
             a.scores["without_clicks"] = state.image_polarity.as_dict()
-        a.set_storage(gc_by_storage, state.xray.stated_storage)
+        a.set_storage(gc_by_storage, *_stated(state))
         a.set_orientation(_database_orientation(state, a.bone_dark))
         self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
@@ -408,7 +414,7 @@ class AppearanceChecks:
         """The storage and the database's orientation verdict of a polarity verdict taken ``again`` (the orientation
         scores of the appearance in use when the polarity is the same, else measured under the new one)."""
         a = state.appearance
-        again.set_storage(gc_by_storage, state.xray.stated_storage)
+        again.set_storage(gc_by_storage, *_stated(state))
         again.set_orientation(a.orientation_scores if again.polarity == a.polarity
                               else _database_orientation(state, again.bone_dark))
 
@@ -591,7 +597,7 @@ class AppearanceChecks:
         p, clicks = state.parameters, state.xray_landmarks
         if len(clicks.labels) < MIN_CLICKS or (clicks.named and not p.level_check):
             return None
-        storage = dark_storage(gc_by_storage, state.xray.stated_storage)
+        storage = dark_storage(gc_by_storage, _stated(state)[0])
         contexts = self._polarity_contexts(state, storage)
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
 
@@ -685,7 +691,7 @@ class AppearanceChecks:
         database's GC map, which is the stored image's, is then not reused). ``without_shading_mm`` > 0: the
         X-ray, the database and the refinements' DRRs compared without their shading above that scale
         (``image.shading``)."""
-        storage = dark_storage(gc_by_storage, state.xray.stated_storage)
+        storage = dark_storage(gc_by_storage, _stated(state)[0])
         contexts = self._polarity_contexts(state, storage)
         if orientation != "as-stored":
             contexts = {polarity: oriented_context(ctx, orientation) for polarity, ctx in contexts.items()}

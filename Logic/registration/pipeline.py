@@ -44,7 +44,7 @@ from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import POLARITIES
 from carmreg.logic.image.field import field_mask, round_field
-from carmreg.logic.image.prepare import EQUALISED, attenuation, bin_image_to, bin_mask_to, coarse_factor
+from carmreg.logic.image.prepare import EQUALISED, STORAGES, attenuation, bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -199,6 +199,8 @@ class CarmRegLogic:
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
         if params.polarity not in ("auto", *POLARITIES):
             raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
+        if params.storage not in ("auto", *STORAGES):
+            raise RegistrationError(f"storage {params.storage!r}: use auto, {' or '.join(STORAGES)}")
         mask = field_mask(xray.pixels)
         round_ = round_field(mask)
         if round_ and not distortion_given(intrinsics):

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from carmreg.cli import main
+from carmreg.logic.image.appearance import STORAGE_FROM_USER
 from carmreg.logic.io.landmarks import read_landmarks_2d
 
 pytestmark = pytest.mark.slow
@@ -21,9 +22,11 @@ def test_unnamed_clicks_as_a_json_list_are_named_in_result_json(sample_case_dir,
     order = [1, 2, 0]
     clicks = tmp_path / "clicks.json"
     clicks.write_text(json.dumps([truth.uv_px[i].tolist() for i in order]))  # [[column, row], ...], no names
-    code = main(_args(sample_case_dir, tmp_path / "out", drr_cache_dir, "--xray-landmarks", str(clicks)))
+    code = main(_args(sample_case_dir, tmp_path / "out", drr_cache_dir, "--xray-landmarks", str(clicks),
+                      "--storage", "log-display"))  # set as the image finds it (the demo: "stored as log display")
     assert code == 0
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert (doc["appearance"]["storage"], doc["appearance"]["storage_from"]) == ("log-display", STORAGE_FROM_USER)
     check = doc["level_check"]
     assert check["mode"] == "unnamed" and check["status"] == "confident"
     assert check["assigned_labels"] == [truth.labels[i] for i in order]

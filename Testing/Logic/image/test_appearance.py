@@ -4,6 +4,7 @@ through the real loader), orientation (a mirrored display is refused, never name
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,7 +14,13 @@ from scipy import ndimage
 from simulated_cases import simulated_ap_case
 
 from carmreg.logic.errors import CancelledError
-from carmreg.logic.image.appearance import STORAGE_FROM_FILE, STORAGE_FROM_IMAGE, decide_polarity
+from carmreg.logic.image.appearance import (
+    STORAGE_FROM_FILE,
+    STORAGE_FROM_IMAGE,
+    STORAGE_FROM_USER,
+    decide_polarity,
+    stated_storage,
+)
 from carmreg.logic.image.field import field_mask, round_field
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to, rank_image
 from carmreg.logic.io.landmarks import Landmarks2D
@@ -121,6 +128,21 @@ def test_a_bone_dark_image_takes_the_storage_its_file_states_else_the_better_agr
     bright = decide_polarity({"bone-dark": 0.2, "bone-bright": 0.5}, None, "auto", True, "header", None)
     bright.set_storage(gc, "linear-intensity")
     assert (bright.storage, bright.storage_from) == ("log-display", STORAGE_FROM_IMAGE)
+
+
+def test_the_users_storage_wins_over_the_files_and_the_images_and_is_said_to_be_set():
+    """``stated_storage``: the user's setting (``RegistrationParameters.storage``) unless auto, else the file's
+    statement (None: the image decides). Set, it is used whatever the image's scores, which are kept."""
+    stated_lin = SimpleNamespace(stated_storage="linear-intensity")
+    assert stated_storage(stated_lin) == ("linear-intensity", STORAGE_FROM_FILE)
+    assert stated_storage(SimpleNamespace(stated_storage=None)) == (None, STORAGE_FROM_FILE)
+    assert stated_storage(stated_lin, "log-display") == ("log-display", STORAGE_FROM_USER)
+    gc = {"linear-intensity": np.array([0.1, 0.38]), "log-display": np.array([0.52, 0.2])}
+    a = decide_polarity({"bone-dark": 0.5, "bone-bright": 0.2}, None, "auto", True, "header", None)
+    a.set_storage(gc, *stated_storage(SimpleNamespace(stated_storage=None), "linear-intensity"))
+    assert (a.storage, a.storage_from) == ("linear-intensity", STORAGE_FROM_USER)  # the image leaned log display
+    assert a.scores["storage"] == pytest.approx({"linear-intensity": 0.38, "log-display": 0.52})
+    assert "stored as linear intensity (as set)" in a.summary()
 
 
 def test_without_clicks_a_refined_lead_under_0_22_is_used_but_not_clear():

@@ -28,7 +28,7 @@ import pytest
 from PIL import Image
 
 from carmreg.logic.drr.cpu import render_line_integrals
-from carmreg.logic.errors import CarmRegError, GeometryError, InputFileError, LandmarkError
+from carmreg.logic.errors import CarmRegError, GeometryError, InputFileError, LandmarkError, RegistrationError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics, CarmPose, project
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.io.landmarks import (
@@ -276,6 +276,16 @@ def test_many_duplicate_labels_are_refused_quickly():
     with pytest.raises(LandmarkError, match="T12 is labelled more than once"):
         Landmarks2D(["T12"] * 50_000, np.zeros((50_000, 2)), "huge.json")
     assert time.perf_counter() - start < 2.0
+
+
+@pytest.mark.parametrize("setting, message", [
+    ({"polarity": "bone-grey"}, "polarity 'bone-grey': use auto, bone-dark or bone-bright"),
+    ({"storage": "raw"}, "storage 'raw': use auto, linear-intensity or log-display"),
+])
+def test_a_polarity_or_storage_not_offered_is_refused_before_any_work(case, setting, message):
+    with pytest.raises(RegistrationError, match=message):
+        CarmRegLogic().prepare(case["ct"], case["ct_landmarks"], load_xray(case["xray_path"]),
+                               case["xray_landmarks"], RegistrationParameters(**setting))
 
 
 # ------------------------------------------------------------------------------------- labelling (full runs)
