@@ -271,6 +271,13 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
                               "set it only to override")
         ui.storage.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("X-ray storage:", ui.storage)
+        ui.field = qt.QComboBox()
+        for key in slicer_nodes().FIELD_CHOICES:
+            ui.field.addItem({"auto": "found from the image", "whole": "the whole image"}[key], key)
+        ui.field.toolTip = ("Where the beam reached the detector. CarmReg finds the exposed field (the collimator's "
+                            "or intensifier's shadow left out); choose the whole image when it leaves out anatomy")
+        ui.field.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
+        form.addRow("X-ray field:", ui.field)
         ui.checkLevels = qt.QCheckBox("Check which vertebra is which")
         ui.checkLevels.connect("toggled(bool)", self.updateParameterNodeFromGUI)
         form.addRow(ui.checkLevels)
@@ -334,6 +341,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
             self.ui.distortion.value = float(node.GetParameter("DistortionMm") or 0)
             self.ui.metric.setCurrentText(node.GetParameter("Metric") or "gc")
             for combo, name, default in ((self.ui.polarity, "Polarity", "auto"), (self.ui.storage, "Storage", "auto"),
+                                         (self.ui.field, "Field", "auto"),
                                          (self.ui.orientation, "XrayOrientation", "as-stored")):
                 combo.setCurrentIndex(max(combo.findData(node.GetParameter(name) or default), 0))
             self.ui.checkLevels.checked = node.GetParameter("CheckLevels") != "false"
@@ -356,7 +364,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         node.SetParameter("SodMm", f"{self.ui.sod.value:g}")
         node.SetParameter("DistortionMm", f"{self.ui.distortion.value:g}")
         node.SetParameter("Metric", self.ui.metric.currentText)
-        for combo, name in ((self.ui.polarity, "Polarity"), (self.ui.storage, "Storage"),
+        for combo, name in ((self.ui.polarity, "Polarity"), (self.ui.storage, "Storage"), (self.ui.field, "Field"),
                             (self.ui.orientation, "XrayOrientation")):
             node.SetParameter(name, combo.itemData(combo.currentIndex))
         node.SetParameter("CheckLevels", "true" if self.ui.checkLevels.checked else "false")

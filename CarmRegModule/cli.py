@@ -168,6 +168,7 @@ def _window_geometry(args) -> dict:
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
+    from carmreg.logic.image.field import FIELDS
     from carmreg.logic.image.prepare import STORAGES
     from carmreg.logic.similarity.metrics import METRICS
 
@@ -184,6 +185,10 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
                    help="how a bone-dark X-ray stores its values: linear-intensity (the detector's intensity, "
                    "converted with -log) or log-display (already log-like); default auto: as its DICOM states, else "
                    "found from the image against the CT's DRRs and recorded in result.json; set it only to override")
+    p.add_argument("--field", choices=FIELDS, default="auto",
+                   help="the X-ray's exposed field: auto (found from the image: the collimator's or intensifier's "
+                   "shadow left out; recorded in result.json) or whole (every pixel exposed; when the field found "
+                   "leaves out anatomy)")
     p.add_argument("--seed", type=int, default=1, help="CMA-ES seed (same seed, same result)")
     p.add_argument("--cache-dir", help="DRR database cache (default: ~/.cache/carmreg)")
     p.add_argument("--no-cache", action="store_true", help="always rebuild the DRR database")
@@ -199,7 +204,7 @@ def _parameters(args):
         raise CarmRegError(f"--cache-dir {args.cache_dir}: this is a file, not a folder; give a folder for the "
                            "DRR database cache (created if missing), or --no-cache")
     params = RegistrationParameters(metric=args.metric, all_metrics=args.all_metrics, polarity=args.polarity,
-                                    storage=args.storage, level_check=not args.no_level_check,
+                                    storage=args.storage, xray_field=args.field, level_check=not args.no_level_check,
                                     cache_dir=None if args.no_cache else str(args.cache_dir or cache_dir()))
     params.fine.seed = args.seed
     return params

@@ -16,6 +16,7 @@ import os
 import numpy as np
 
 from carmreg.logic.image.appearance import POLARITIES
+from carmreg.logic.image.field import FIELDS
 from carmreg.logic.image.prepare import STORAGES
 from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import METRICS
@@ -31,14 +32,15 @@ NODE_ROLES = {"CT": "vtkMRMLScalarVolumeNode", "CTPoints": "vtkMRMLMarkupsFiduci
 OUTPUT_NAMES = {"CarmTransform": "C-arm", "DRR": "DRR", "Overlay": "Overlay", "ProjectedLevels": "Projected levels"}
 DEFAULT_PARAMETERS = {"SddMm": "0", "PixelSpacingMm": "0", "SodMm": "0", "DistortionMm": "0", "Metric": "gc",
                       "CheckLevels": "true", "EstimatePincushion": "true", "Polarity": "auto", "Storage": "auto",
-                      "XrayOrientation": "as-stored"}
+                      "Field": "auto", "XrayOrientation": "as-stored"}
 """0 = take the value from the X-ray file (DICOM tags) or CarmReg's default; EstimatePincushion: a round field
 with no DistortionMm given gets its pincushion estimated from the image (``registration.pincushion``); Polarity:
 auto (found from the image against the CT), bone-dark or bone-bright; Storage (a bone-dark X-ray's): auto (as its
-DICOM states, else found from the image), linear-intensity or log-display; XrayOrientation: ``image.turn.ORIENTATIONS``
-(module docstring)."""
+DICOM states, else found from the image), linear-intensity or log-display; Field: auto (the exposed field found from
+the image) or whole; XrayOrientation: ``image.turn.ORIENTATIONS`` (module docstring)."""
 POLARITY_CHOICES = ("auto", *POLARITIES)
 STORAGE_CHOICES = ("auto", *STORAGES)
+FIELD_CHOICES = FIELDS
 ORIENTATION_CHOICES = tuple(ORIENTATIONS)
 
 
@@ -254,19 +256,22 @@ def parameters_from_node(parameter_node):
 
 
 def display_from_node(parameter_node):
-    """(polarity, storage, orientation) of a parameter node's X-ray: ``POLARITY_CHOICES``, ``STORAGE_CHOICES``,
-    ``ORIENTATION_CHOICES``."""
+    """(polarity, storage, field, orientation) of a parameter node's X-ray: ``POLARITY_CHOICES``, ``STORAGE_CHOICES``,
+    ``FIELD_CHOICES``, ``ORIENTATION_CHOICES``."""
     polarity = parameter_node.GetParameter("Polarity") or "auto"
     storage = parameter_node.GetParameter("Storage") or "auto"
+    field = parameter_node.GetParameter("Field") or "auto"
     orientation = parameter_node.GetParameter("XrayOrientation") or "as-stored"
     if polarity not in POLARITY_CHOICES:
         raise ValueError(f"CarmReg parameter Polarity = {polarity!r}; choose one of {', '.join(POLARITY_CHOICES)}")
     if storage not in STORAGE_CHOICES:
         raise ValueError(f"CarmReg parameter Storage = {storage!r}; choose one of {', '.join(STORAGE_CHOICES)}")
+    if field not in FIELD_CHOICES:
+        raise ValueError(f"CarmReg parameter Field = {field!r}; choose one of {', '.join(FIELD_CHOICES)}")
     if orientation not in ORIENTATIONS:
         raise ValueError(f"CarmReg parameter XrayOrientation = {orientation!r}; choose one of "
                          f"{', '.join(ORIENTATIONS)}")
-    return polarity, storage, orientation
+    return polarity, storage, field, orientation
 
 
 def output_node(scene, parameter_node, role):
@@ -290,7 +295,7 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
     if missing:
         raise ValueError(f"CarmReg: select the {', '.join(missing)} input(s) first")
     sdd_mm, spacing_mm, sod_mm, metric, check_levels, distortion_mm = parameters_from_node(parameter_node)
-    polarity, storage, orientation = display_from_node(parameter_node)
+    polarity, storage, field, orientation = display_from_node(parameter_node)
     ct = ct_from_node(nodes["CT"])
     ct_landmarks = ct_points_from_node(nodes["CTPoints"])
     xray = xray_from_node(nodes["Xray"], sdd_mm, spacing_mm, sod_mm, distortion_mm)
@@ -300,6 +305,7 @@ def register_nodes(parameter_node, logic=None, cache_dir=None):
     xray = turned_xray(xray, orientation)
     params = pipeline.RegistrationParameters(
         metric=metric, level_check=check_levels, cache_dir=cache_dir, polarity=polarity, storage=storage,
+        xray_field=field,
         estimate_pincushion=parameter_node.GetParameter("EstimatePincushion") != "false")
     result = (logic or pipeline.CarmRegLogic()).register(ct, ct_landmarks, xray, clicks, params)
     return result, ct, ct_landmarks, xray
@@ -312,7 +318,7 @@ def show_result(scene, parameter_node, result, xray):
     from carmreg.logic.image.turn import stored_image
 
     xray_node = parameter_node.GetNodeReference("Xray")
-    orientation = display_from_node(parameter_node)[2]
+    orientation = display_from_node(parameter_node)[3]
     set_transform(output_node(scene, parameter_node, "CarmTransform"), result)
     if result.drr_line_integral is not None:
         for role, image in (("DRR", result.drr_line_integral), ("Overlay", overlay_rgb(result, xray))):

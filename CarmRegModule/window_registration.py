@@ -72,7 +72,7 @@ class WindowRegistration:
         api = _registration_api()
         chosen = self.registration_panel.parameters()
         values = {"metric": chosen["metric"], "polarity": chosen.get("polarity", "auto"),
-                  "storage": chosen.get("storage", "auto"),
+                  "storage": chosen.get("storage", "auto"), "xray_field": chosen.get("field", "auto"),
                   "estimate_pincushion": chosen.get("estimate_pincushion", True),
                   "cache_dir": str(cache_dir()) if chosen["use_cache"] else None}
         values.update(self.parameter_overrides)

@@ -85,6 +85,7 @@ class WindowSession:
             self.registration_panel.set_metric(metric)
         self.registration_panel.set_polarity(session.parameters.get("polarity"))
         self.registration_panel.set_storage(session.parameters.get("storage"))
+        self.registration_panel.set_field(session.parameters.get("field"))
         self.registration_panel.set_estimate_pincushion(session.parameters.get("estimate_pincushion"))
         self.last_result_summary = session.last_result
         if session.last_result:

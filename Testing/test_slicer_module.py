@@ -344,6 +344,10 @@ def test_an_xray_volume_stored_mirrored_registers_turned_back_and_its_outputs_la
     parameters.SetParameter("Storage", "raw")
     with pytest.raises(ValueError, match="Storage = 'raw'; choose one of auto, linear-intensity, log-display"):
         nodes.register_nodes(parameters)
+    parameters.SetParameter("Storage", "auto")
+    parameters.SetParameter("Field", "round")
+    with pytest.raises(ValueError, match="Field = 'round'; choose one of auto, whole"):
+        nodes.register_nodes(parameters)
 
 
 def _to_parent(transform_node):

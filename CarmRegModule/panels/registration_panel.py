@@ -24,6 +24,8 @@ STORAGE_CHOICES = (("auto", "As the file states, else found"), ("log-display", "
                    ("linear-intensity", "Linear intensity (raw detector)"))
 """The X-ray storage settings (``RegistrationParameters.storage``: auto or one of ``image.prepare.STORAGES``) and
 their words; a test pins the keys to ``STORAGES``."""
+FIELD_CHOICES = (("auto", "Found from the image"), ("whole", "The whole image"))
+"""The X-ray field settings (``RegistrationParameters.xray_field``: ``image.field.FIELDS``) and their words."""
 
 STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",
@@ -162,6 +164,15 @@ class RegistrationPanel(QtWidgets.QWidget):
                                       "override")
         form.addRow("X-ray storage", self.storage_combo)
         self.storage_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        self.field_combo = QtWidgets.QComboBox()
+        self.field_combo.setObjectName("xray_field")
+        for key, text in FIELD_CHOICES:
+            self.field_combo.addItem(text, key)
+        self.field_combo.setToolTip("Where the beam reached the detector. CarmReg finds the exposed field (the "
+                                    "collimator's or intensifier's shadow left out); choose the whole image when the "
+                                    "field found leaves out anatomy")
+        form.addRow("X-ray field", self.field_combo)
+        self.field_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
         self.pincushion_check = QtWidgets.QCheckBox("Estimate an intensifier's pincushion from the image")
         self.pincushion_check.setChecked(True)
         self.pincushion_check.setToolTip("On a round field (an image intensifier's) with no Pincushion given (C-arm "
@@ -224,7 +235,8 @@ class RegistrationPanel(QtWidgets.QWidget):
     def parameters(self) -> dict:
         return {"metric": self.metric_combo.currentData() or self.metric_combo.currentText(),
                 "polarity": self.polarity_combo.currentData() or "auto",
-                "storage": self.storage_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked(),
+                "storage": self.storage_combo.currentData() or "auto",
+                "field": self.field_combo.currentData() or "auto", "use_cache": self.cache_check.isChecked(),
                 "estimate_pincushion": self.pincushion_check.isChecked()}
 
     def set_estimate_pincushion(self, on) -> None:
@@ -245,6 +257,10 @@ class RegistrationPanel(QtWidgets.QWidget):
     def set_storage(self, key) -> None:
         """Choose the X-ray storage setting (``auto`` or one of ``image.prepare.STORAGES``; anything else: auto)."""
         self.storage_combo.setCurrentIndex(max(self.storage_combo.findData(key if isinstance(key, str) else ""), 0))
+
+    def set_field(self, key) -> None:
+        """Choose the X-ray field setting (``image.field.FIELDS``; anything else: auto)."""
+        self.field_combo.setCurrentIndex(max(self.field_combo.findData(key if isinstance(key, str) else ""), 0))
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""
@@ -297,6 +313,7 @@ class RegistrationPanel(QtWidgets.QWidget):
         self.metric_combo.setEnabled(not running)
         self.polarity_combo.setEnabled(not running)
         self.storage_combo.setEnabled(not running)
+        self.field_combo.setEnabled(not running)
         self.pincushion_check.setEnabled(not running)
         self.reset_button.setEnabled(not running and bool(self._done))
 

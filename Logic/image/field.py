@@ -15,7 +15,9 @@ plausible is found (< 5 % of the image) the whole image is the field. The rule d
 is displayed, so it can be found *before* the polarity (``appearance``).
 
 ``round_field`` tells an image intensifier's round field from a rectangular collimation (the pipeline warns when
-such an image comes without a distortion calibration).
+such an image comes without a distortion calibration). The user may say the whole image is exposed instead
+(``FIELDS``: ``--field whole``, the window's and the Slicer module's X-ray field), when the rule takes exposed
+anatomy for background; ``field_record`` is what result.json keeps of the field used, and how it was decided.
 
 ``display_range`` is the X-ray's default contrast, used by the window's X-ray view and by every overlay (window,
 report page, ``overlay.png``): the 1st-99th percentiles of the field's pixels, clipped pixels left out - those at
@@ -36,6 +38,9 @@ SHUTTER_STEP = 0.25       # a shutter edge's median step, fraction of the range 
 SHUTTER_ZONE = 0.4        # searched within this outer fraction of the field's box on each side
 SHUTTER_HALF_WIDTH = 2    # the step is taken across 2 x this many pixels
 SAMPLE_SIZE = 250_000     # percentiles from about this many pixels (a regular subsample)
+FIELDS = ("auto", "whole")
+"""The field settings (``RegistrationParameters.xray_field``): found from the image (``field_mask``), or the whole
+image."""
 
 
 def _border_connected(candidates: np.ndarray) -> np.ndarray:
@@ -84,6 +89,21 @@ def _circle(u: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
     (d, e, f), *_ = np.linalg.lstsq(np.stack([u, v, np.ones(len(u))], 1), -(u * u + v * v), rcond=None)
     cu, cv = -d / 2.0, -e / 2.0
     return cu, cv, float(np.sqrt(max(cu * cu + cv * cv - f, 0.0)))
+
+
+def exposed_field(pixels: np.ndarray, setting: str = "auto") -> np.ndarray:
+    """The field a registration uses (``FIELDS``): ``field_mask`` when "auto", else every pixel."""
+    return field_mask(pixels) if setting == "auto" else np.ones(np.shape(pixels), bool)
+
+
+def field_record(mask: np.ndarray, round_: bool, setting: str = "auto") -> dict:
+    """What result.json keeps of the field used (``inputs.xray_field``): how it was decided (``setting``), its shape
+    (round: an intensifier's, ``round_field``), the fraction of the image it covers and its bounding box
+    [first column, first row, last column, last row] in px of the registered image (0-based pixel centres)."""
+    rows, cols = np.nonzero(mask)
+    box = [int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max())] if len(rows) else None
+    return {"decided_by": "image" if setting == "auto" else "user (the whole image)",
+            "shape": "round" if round_ else "rectangular", "exposed_fraction": float(np.mean(mask)), "box_px": box}
 
 
 def round_field(mask: np.ndarray) -> bool:

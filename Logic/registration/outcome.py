@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from carmreg.logic.geometry.camera import CarmPose, in_detector, project
 from carmreg.logic.geometry.projection_distance import pde_mm
+from carmreg.logic.image.field import field_record
 from carmreg.logic.image.turn import composed, turn_advice
 from carmreg.logic.io.landmarks import level_index
 from carmreg.logic.registration.depth import tx_limits
@@ -62,6 +63,7 @@ def build_result(state: RegistrationState) -> RegistrationResult:
         inputs={"ct": state.ct.source, "xray": state.xray.source, "ct_landmarks": state.ct_landmarks.source,
                 "xray_landmarks": state.xray_landmarks.source, "geometry_sources": geometry_sources(state),
                 "xray_frame": state.xray.meta.get("frame"), "xray_turned": xray_turned(state),
+                "xray_field": field_record(state.mask, state.round_field, state.parameters.xray_field),
                 "xray_frames_in_file": state.xray.meta.get("n_frames")})
 
 

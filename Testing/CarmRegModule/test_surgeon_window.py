@@ -492,12 +492,13 @@ def test_the_pincushion_setting_reaches_the_logic(window):
 
 
 def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_is_shown(window):
-    """Register step: 'X-ray polarity' and 'X-ray storage' (auto by default) become RegistrationParameters.polarity
-    and .storage and are kept in a session; the Check step shows what the registration found (result.appearance),
-    amber when not trusted."""
+    """Register step: 'X-ray polarity', 'X-ray storage' and 'X-ray field' (auto by default) become
+    RegistrationParameters.polarity, .storage and .field and are kept in a session; the Check step shows what the
+    registration found (result.appearance), amber when not trusted."""
     from carmreg.logic.image.appearance import decide_polarity
+    from carmreg.logic.image.field import FIELDS
     from carmreg.logic.image.prepare import STORAGES
-    from carmreg.panels.registration_panel import STORAGE_CHOICES
+    from carmreg.panels.registration_panel import FIELD_CHOICES, STORAGE_CHOICES
 
     win = window
     assert win.registration_parameters().polarity == "auto"
@@ -506,13 +507,20 @@ def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_
     assert win.registration_panel.parameters()["polarity"] == "bone-bright"
     win.registration_panel.set_polarity("nonsense")
     assert win.registration_parameters().polarity == "auto"
-    assert [key for key, _ in STORAGE_CHOICES] == ["auto", *sorted(STORAGES, reverse=True)]  # every storage offered
+    assert {key for key, _ in STORAGE_CHOICES} == {"auto", *STORAGES}  # every storage offered, and only those
+    assert tuple(key for key, _ in FIELD_CHOICES) == FIELDS
     assert win.registration_parameters().storage == "auto"  # 'X-ray storage': the same way
     win.registration_panel.set_storage("linear-intensity")
     assert win.registration_parameters().storage == "linear-intensity"
     assert win.registration_panel.parameters()["storage"] == "linear-intensity"  # what a session keeps
     win.registration_panel.set_storage(None)  # a session from before stop 57
     assert win.registration_parameters().storage == "auto"
+    assert win.registration_parameters().xray_field == "auto"  # 'X-ray field': found unless the whole image is said
+    win.registration_panel.set_field("whole")
+    assert win.registration_parameters().xray_field == "whole"
+    assert win.registration_panel.parameters()["field"] == "whole"  # what a session keeps
+    win.registration_panel.set_field(None)
+    assert win.registration_parameters().xray_field == "auto"
     found = decide_polarity({"bone-dark": 0.2, "bone-bright": 0.5}, None, "auto", True, "PNG", None)
     win.result_panel.set_appearance(found)
     assert "bone-bright, found from the image" in win.result_panel.appearance_label.text()

@@ -21,7 +21,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     stated_storage,
 )
-from carmreg.logic.image.field import field_mask, round_field
+from carmreg.logic.image.field import exposed_field, field_mask, field_record, round_field
 from carmreg.logic.image.prepare import bin_image_to, bin_mask_to, rank_image
 from carmreg.logic.io.landmarks import Landmarks2D
 from carmreg.logic.io.xray import XrayImage, load_xray
@@ -74,6 +74,24 @@ def _disc(shape, centre, radius):
 ])
 def test_a_round_field_is_told_from_a_rectangular_one(mask, round_):
     assert round_field(mask) is round_
+
+
+def test_the_field_used_is_found_or_the_whole_image_as_the_user_says_and_recorded_so():
+    """``exposed_field``: found (``field_mask``) unless the user says the whole image is exposed; ``field_record``:
+    how it was decided, its shape, the fraction of the image and its box in px (column, row)."""
+    v, u = np.mgrid[0:120, 0:160]
+    anatomy = 500.0 + 300.0 * np.sin(u / 7.0) * np.cos(v / 9.0)  # the field is not flat; its shadow is
+    image = np.where(_disc((120, 160), (60, 70), 50), anatomy, 0.0)
+    found = exposed_field(image)
+    assert round_field(found) and exposed_field(image, "whole").all()
+    record = field_record(found, round_field(found))
+    assert (record["decided_by"], record["shape"]) == ("image", "round")
+    assert record["exposed_fraction"] == pytest.approx(np.pi * 50**2 / (120 * 160), rel=0.1)
+    u0, v0, u1, v1 = record["box_px"]
+    assert 19 <= u0 <= 25 and 115 <= u1 <= 120 and 9 <= v0 <= 20 and 100 <= v1 <= 111  # (column, row): the disc's
+    whole = field_record(np.ones((120, 160), bool), False, "whole")
+    assert whole == {"decided_by": "user (the whole image)", "shape": "rectangular", "exposed_fraction": 1.0,
+                     "box_px": [0, 0, 159, 119]}
 
 
 def test_a_real_fluoroscopy_image_intensifier_field_is_round():

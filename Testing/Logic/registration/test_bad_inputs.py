@@ -281,8 +281,9 @@ def test_many_duplicate_labels_are_refused_quickly():
 @pytest.mark.parametrize("setting, message", [
     ({"polarity": "bone-grey"}, "polarity 'bone-grey': use auto, bone-dark or bone-bright"),
     ({"storage": "raw"}, "storage 'raw': use auto, linear-intensity or log-display"),
+    ({"xray_field": "round"}, "field 'round': use auto or whole"),
 ])
-def test_a_polarity_or_storage_not_offered_is_refused_before_any_work(case, setting, message):
+def test_a_polarity_storage_or_field_not_offered_is_refused_before_any_work(case, setting, message):
     with pytest.raises(RegistrationError, match=message):
         CarmRegLogic().prepare(case["ct"], case["ct_landmarks"], load_xray(case["xray_path"]),
                                case["xray_landmarks"], RegistrationParameters(**setting))

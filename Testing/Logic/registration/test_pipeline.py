@@ -181,6 +181,10 @@ def test_shipped_sample_case_end_to_end(sample_case_dir, sample, drr_cache_dir, 
     assert {s["name"] for s in doc["stages"]} == set(STAGES)
     assert doc["reproducibility"]["seed"] == result.parameters.fine.seed
     assert doc["inputs"]["xray_frame"] == 0 and doc["inputs"]["xray_frames_in_file"] == 1
+    field = doc["inputs"]["xray_field"]  # the intensifier's disc, found: what the image shows of it
+    assert (field["decided_by"], field["shape"]) == ("image", "round") and 0.5 < field["exposed_fraction"] < 0.85
+    u0, v0, u1, v1 = field["box_px"]
+    assert 0 <= u0 < 80 and 0 <= v0 < 80 and 944 <= u1 <= 1023 and 944 <= v1 <= 1023
     manifest = json.loads((tmp_path / "carmreg-manifest.json").read_text())["files"]
     assert {p.name for p in paths.values()} <= set(manifest)
     for key in ("overlay", "drr_png", "drr_nrrd", "tfm", "convergence"):
