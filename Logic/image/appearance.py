@@ -237,8 +237,11 @@ def trusted_appearance(clear: bool, orientation: str, orientation_clear: bool) -
 STORAGE_FROM_IMAGE = "image (the conversion whose best DRR agrees more)"
 STORAGE_FROM_FILE = "file (DICOM PixelIntensityRelationship LIN, sign +1: linear intensity)"
 STORAGE_FROM_USER = "user (set, not found)"
-"""``Appearance.storage_from``: how a bone-dark image's storage was decided (``dark_storage``)."""
-STORAGE_NOTES = {STORAGE_FROM_FILE: " (as the file states)", STORAGE_FROM_USER: " (as set)"}
+STORAGE_SET_UNUSED = "user (set, unused: a bone-bright image is used as displayed)"
+"""``Appearance.storage_from``: how a bone-dark image's storage was decided (``dark_storage``), or that the user's
+storage went unused on a bone-bright image."""
+STORAGE_NOTES = {STORAGE_FROM_FILE: " (as the file states)", STORAGE_FROM_USER: " (as set)",
+                 STORAGE_SET_UNUSED: " (the storage set applies to bone-dark images only)"}
 """What ``Appearance.summary`` says after the storage, by ``storage_from`` (nothing when the image decided)."""
 
 
@@ -350,6 +353,9 @@ class Appearance:
         if self.bone_dark:
             self.storage = dark_storage(gc_by_storage, stated)
             self.storage_from = STORAGE_FROM_IMAGE if stated is None else stated_by
+        else:  # used as displayed, whatever was stated; a user who set a storage is told so
+            self.storage_from = STORAGE_SET_UNUSED if stated is not None and stated_by == STORAGE_FROM_USER \
+                else STORAGE_FROM_IMAGE
 
     def set_orientation(self, scores: dict) -> None:
         """Record ``orientation_scores`` and decide the orientation (module docstring)."""

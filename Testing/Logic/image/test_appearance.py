@@ -18,6 +18,7 @@ from carmreg.logic.image.appearance import (
     STORAGE_FROM_FILE,
     STORAGE_FROM_IMAGE,
     STORAGE_FROM_USER,
+    STORAGE_SET_UNUSED,
     decide_polarity,
     stated_storage,
 )
@@ -161,6 +162,10 @@ def test_the_users_storage_wins_over_the_files_and_the_images_and_is_said_to_be_
     assert (a.storage, a.storage_from) == ("linear-intensity", STORAGE_FROM_USER)  # the image leaned log display
     assert a.scores["storage"] == pytest.approx({"linear-intensity": 0.38, "log-display": 0.52})
     assert "stored as linear intensity (as set)" in a.summary()
+    bright = decide_polarity({"bone-dark": 0.2, "bone-bright": 0.5}, None, "auto", True, "header", None)
+    bright.set_storage(gc, *stated_storage(stated_lin, "linear-intensity"))  # used as displayed, and told so
+    assert (bright.storage, bright.storage_from) == ("log-display", STORAGE_SET_UNUSED)
+    assert "(the storage set applies to bone-dark images only)" in bright.summary()
 
 
 def test_without_clicks_a_refined_lead_under_0_22_is_used_but_not_clear():
