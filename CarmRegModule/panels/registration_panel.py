@@ -20,6 +20,9 @@ from qtpy import QtCore, QtWidgets
 
 from carmreg.logic.report.style import names_shown, status_ink
 
+POLARITY_CHOICES = (("auto", "Find from the image"), ("bone-dark", "Bone dark (fluoroscopy)"),
+                    ("bone-bright", "Bone bright (radiograph)"))
+"""The X-ray polarity settings (``RegistrationParameters.polarity``) and their words."""
 STORAGE_CHOICES = (("auto", "As the file states, else found"), ("log-display", "Log display (processed)"),
                    ("linear-intensity", "Linear intensity (raw detector)"))
 """The X-ray storage settings (``RegistrationParameters.storage``: auto or one of ``image.prepare.STORAGES``) and
@@ -147,32 +150,17 @@ class RegistrationPanel(QtWidgets.QWidget):
                                      "correlation is the most reliable on C-arm images (README)")
         form.addRow("Similarity", self.metric_combo)
         self.metric_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
-        self.polarity_combo = QtWidgets.QComboBox()
-        for key, text in (("auto", "Find from the image"), ("bone-dark", "Bone dark (fluoroscopy)"),
-                          ("bone-bright", "Bone bright (radiograph)")):
-            self.polarity_combo.addItem(text, key)
-        self.polarity_combo.setToolTip("How the X-ray shows bone. CarmReg finds it from the image against the CT "
-                                       "and says how clearly (Check step); set it only to override")
-        form.addRow("X-ray polarity", self.polarity_combo)
-        self.polarity_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
-        self.storage_combo = QtWidgets.QComboBox()
-        self.storage_combo.setObjectName("xray_storage")
-        for key, text in STORAGE_CHOICES:
-            self.storage_combo.addItem(text, key)
-        self.storage_combo.setToolTip("How a bone-dark X-ray stores its values. CarmReg takes what the DICOM states, "
-                                      "else finds it from the image against the CT (Check step); set it only to "
-                                      "override")
-        form.addRow("X-ray storage", self.storage_combo)
-        self.storage_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
-        self.field_combo = QtWidgets.QComboBox()
-        self.field_combo.setObjectName("xray_field")
-        for key, text in FIELD_CHOICES:
-            self.field_combo.addItem(text, key)
-        self.field_combo.setToolTip("Where the beam reached the detector. CarmReg finds the exposed field (the "
-                                    "collimator's or intensifier's shadow left out); choose the whole image when the "
-                                    "field found leaves out anatomy")
-        form.addRow("X-ray field", self.field_combo)
-        self.field_combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        self.polarity_combo = self._setting(form, "X-ray polarity", "xray_polarity", POLARITY_CHOICES,
+                                            "How the X-ray shows bone. CarmReg finds it from the image against the CT "
+                                            "and says how clearly (Check step); set it only to override")
+        self.storage_combo = self._setting(form, "X-ray storage", "xray_storage", STORAGE_CHOICES,
+                                           "How a bone-dark X-ray stores its values. CarmReg takes what the DICOM "
+                                           "states, else finds it from the image against the CT (Check step); set it "
+                                           "only to override")
+        self.field_combo = self._setting(form, "X-ray field", "xray_field", FIELD_CHOICES,
+                                         "Where the beam reached the detector. CarmReg finds the exposed field (the "
+                                         "collimator's or intensifier's shadow left out); choose the whole image when "
+                                         "the field found leaves out anatomy")
         self.pincushion_check = QtWidgets.QCheckBox("Estimate an intensifier's pincushion from the image")
         self.pincushion_check.setChecked(True)
         self.pincushion_check.setToolTip("On a round field (an image intensifier's) with no Pincushion given (C-arm "
@@ -230,6 +218,18 @@ class RegistrationPanel(QtWidgets.QWidget):
         layout.addWidget(self.reset_button)
         layout.addStretch(1)
         self.reset()
+
+    def _setting(self, form, label: str, name: str, choices: tuple, tip: str) -> QtWidgets.QComboBox:
+        """A combo box of an X-ray setting ((key, words) ``choices``, the first the default) in ``form``; changing
+        it after a registration asks for a fresh start, as every input does."""
+        combo = QtWidgets.QComboBox()
+        combo.setObjectName(name)
+        for key, text in choices:
+            combo.addItem(text, key)
+        combo.setToolTip(tip)
+        form.addRow(label, combo)
+        combo.currentIndexChanged.connect(lambda _i: self._done and self.reset_requested.emit())
+        return combo
 
     # ------------------------------------------------------------------------------------- state
     def parameters(self) -> dict:
