@@ -43,7 +43,7 @@ class RegistrationParameters:
     metric: str = "gc"                      # spatial-search metric (paper: PSNR); see README for why GC
     polarity: str = "auto"                  # auto (found from the image) | bone-dark | bone-bright
     storage: str = "auto"                   # a bone-dark image's: auto (the file's, else found from the image) |
-    #                                         linear-intensity | log-display (``image.appearance.STORAGES``)
+    #                                         linear-intensity | log-display (``image.prepare.STORAGES``)
     xray_field: str = "auto"                # the X-ray's exposed field: auto (found, ``image.field``) | whole
     all_metrics: bool = False               # also compute the other six maps (paper Fig. 6; ~7x the time)
     coarse_spacing_mm: float = 4.0          # mu level and coarse detector pixel (paper: 4 mm)
