@@ -225,7 +225,7 @@ class WindowRegistration:
         self.overlay_view.set_result(self.xray.pixels, bone_dark, result.drr_line_integral,
                                      result.levels, clicks, summary, banner,
                                      status=check.status if check else None,
-                                     names_withheld=not names_shown(check))
+                                     names_withheld=not names_shown(check), mask=getattr(result, "field_mask", None))
         ids = self._result_click_ids(result)
         self._show_assigned(result, ids)
         self.result_panel.set_result(result, [self.xray_store.display_name(pid) for pid in ids])

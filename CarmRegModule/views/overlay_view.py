@@ -53,16 +53,19 @@ class OverlayView(ImageCanvas):
     def set_result(self, xray_pixels: np.ndarray, bone_dark: bool, drr_line_integral: np.ndarray | None,
                    levels: list[dict], clicks: dict[str, np.ndarray], summary: str = "",
                    banner: tuple[str, str, str] | None = None, status: str | None = None,
-                   names_withheld: bool = False) -> None:
+                   names_withheld: bool = False, mask: np.ndarray | None = None) -> None:
         """``summary``: the header line (mPDE of the pose drawn, magnification); ``banner``: the level answer
         (headline, reason, colour) drawn across the top; ``status``: the level answer's status (ambiguous or
         contradicted: every name drawn with a "?", ``style.level_marker``); ``names_withheld``: the answer names
-        no level (``style.names_shown``), so no name is drawn, whatever "Names" says."""
+        no level (``style.names_shown``), so no name is drawn, whatever "Names" says; ``mask``: the exposed field
+        the registration used (``RegistrationResult.field_mask``; default: found, ``image.field.field_mask``), as
+        ``overlay.png`` and the report page take it."""
         from carmreg.logic.image.field import field_mask
 
         self.banner, self.status, self.names_withheld = banner, status, bool(names_withheld)
 
-        mask = field_mask(xray_pixels)  # the exposed (collimated) field, as the logic sees it
+        if mask is None or np.shape(mask) != np.shape(xray_pixels):
+            mask = field_mask(xray_pixels)
         self._xray01 = overlay_images.xray_bone_bright(xray_pixels, bone_dark, mask)
         self._drr01 = (overlay_images.normalise(drr_line_integral, mask) if drr_line_integral is not None
                        else np.zeros_like(self._xray01))
