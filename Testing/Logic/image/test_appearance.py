@@ -46,6 +46,21 @@ def test_rank_image_is_the_same_for_any_increasing_storage():
     assert not rank_image(linear, mask)[~mask].any()
 
 
+def test_rank_image_of_16_bit_integers_ties_broken_by_position_as_for_any_values():
+    """Integer pixels are ranked through a uint16 radix sort: the same ranks as a stable sort of the float values,
+    ties (many, on a 12-bit image) broken by position; values outside uint16 or not integers take the float sort."""
+    rng = np.random.default_rng(1)
+    mask = np.ones((60, 70), bool)
+    mask[:4] = False
+    for pixels in (rng.integers(0, 4096, mask.shape).astype(np.float32), rng.integers(0, 65536, mask.shape) * 1.0):
+        values = pixels[mask].astype(np.float64)
+        ranks = np.empty(values.size)
+        ranks[np.argsort(values, kind="stable")] = np.arange(values.size)
+        np.testing.assert_array_equal(rank_image(pixels, mask)[mask], (ranks / (values.size - 1)).astype(np.float32))
+    wide = rng.integers(-5, 70000, mask.shape) * 1.0  # not uint16: the float sort, the same rule
+    assert np.all(np.diff(rank_image(wide, mask)[mask][np.argsort(wide[mask], kind="stable")]) > 0)
+
+
 def test_field_is_found_whichever_way_bone_is_shown():
     """A circular field with texture, black outside: the field of the image and of its inverse (still black
     outside) agree, and each leaves out the black corners."""
