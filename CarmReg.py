@@ -273,7 +273,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         form.addRow("X-ray storage:", ui.storage)
         ui.field = qt.QComboBox()
         for key in slicer_nodes().FIELD_CHOICES:
-            ui.field.addItem({"auto": "found from the image", "whole": "the whole image"}[key], key)
+            ui.field.addItem({"auto": "found from the image"}.get(key, f"the {key} image"), key)
         ui.field.toolTip = ("Where the beam reached the detector. CarmReg finds the exposed field (the collimator's "
                             "or intensifier's shadow left out); choose the whole image when it leaves out anatomy")
         ui.field.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)

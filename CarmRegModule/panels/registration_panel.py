@@ -250,17 +250,23 @@ class RegistrationPanel(QtWidgets.QWidget):
         if index >= 0:
             self.metric_combo.setCurrentIndex(index)
 
+    @staticmethod
+    def _choose(combo: QtWidgets.QComboBox, key) -> None:
+        """Choose ``key`` in an X-ray setting's combo (``_setting``); anything not offered (a session from an older
+        CarmReg, a hand-edited one): its first choice, auto."""
+        combo.setCurrentIndex(max(combo.findData(key if isinstance(key, str) else ""), 0))
+
     def set_polarity(self, key) -> None:
-        """Choose the X-ray polarity setting (``auto``, ``bone-dark``, ``bone-bright``; anything else: auto)."""
-        self.polarity_combo.setCurrentIndex(max(self.polarity_combo.findData(key if isinstance(key, str) else ""), 0))
+        """Choose the X-ray polarity setting (``POLARITY_CHOICES``)."""
+        self._choose(self.polarity_combo, key)
 
     def set_storage(self, key) -> None:
-        """Choose the X-ray storage setting (``auto`` or one of ``image.prepare.STORAGES``; anything else: auto)."""
-        self.storage_combo.setCurrentIndex(max(self.storage_combo.findData(key if isinstance(key, str) else ""), 0))
+        """Choose the X-ray storage setting (``STORAGE_CHOICES``)."""
+        self._choose(self.storage_combo, key)
 
     def set_field(self, key) -> None:
-        """Choose the X-ray field setting (``image.field.FIELDS``; anything else: auto)."""
-        self.field_combo.setCurrentIndex(max(self.field_combo.findData(key if isinstance(key, str) else ""), 0))
+        """Choose the X-ray field setting (``FIELD_CHOICES``)."""
+        self._choose(self.field_combo, key)
 
     def set_ready(self, ready: bool, reason: str, mode: str | None = None) -> None:
         """Enable the run buttons; ``mode`` = the level-identification mode the clicks ask for."""

@@ -66,7 +66,8 @@ Orientation
 -----------
 A C-arm display can be mirrored left-right or turned (display settings), which no header records. With the
 polarity's sign s, the rank image is also scored in the other orientations that keep its shape - mirrored
-left-right, flipped up-down, turned 180 degrees, and on a square detector turned 90 degrees either way -
+left-right, flipped up-down, turned 180 degrees, and on a square detector turned 90 degrees either way
+(``turn.JUDGED``; the two transposes the user may turn a file by are not scored, even on a square detector) -
 against every other DRR of the database (half the grid each way, enough to find the best)::
 
     score(o) = max_k s GC(o(R), D_k)
@@ -314,9 +315,11 @@ class Appearance:
         self.note = f"{again.note}; confirmed with {evidence} judged too (a lead of {threshold_gc} needed there)"
         self.scores["refined"] = again.scores.get("refined")
 
-    def other_polarity(self, dark_storage: str, orientation_scores: dict) -> Appearance:
+    def other_polarity(self, dark_storage: str, orientation_scores: dict,
+                       stated: tuple[str | None, str] = (None, STORAGE_FROM_FILE)) -> Appearance:
         """A copy under the other polarity, never clear: a bone-dark image converted with ``dark_storage``, the
-        database's orientation verdict from ``orientation_scores`` measured under that polarity. The levels contest
+        storage's source under that polarity from ``stated`` (``stated_storage``), the database's orientation
+        verdict from ``orientation_scores`` measured under that polarity. The levels contest
         runs on it when, under this unclear polarity, its best labelling explained the image poorly
         (``AppearanceChecks.contest_under_other_polarity``); only its winner judged at the clicks can make it clear
         (``with_winner``)."""
@@ -326,6 +329,7 @@ class Appearance:
                         orientation_at_clicks=None, orientation_decided_by="image (database)",
                         note=(f"{polarity}, tried because as {self.polarity} (unclear) the best labelling of the "
                               "clicks explained the image poorly; not clear"))
+        other._storage_source(*stated)
         other.set_orientation(orientation_scores)
         return other
 
@@ -352,8 +356,15 @@ class Appearance:
         self.scores["storage"] = {k: float(np.max(v)) for k, v in gc_by_storage.items()}
         if self.bone_dark:
             self.storage = dark_storage(gc_by_storage, stated)
+        self._storage_source(stated, stated_by)
+
+    def _storage_source(self, stated: str | None, stated_by: str) -> None:
+        """``storage_from`` under this appearance's polarity: a bone-dark image's stated storage by whom it was stated
+        (else the image's), a bone-bright image used as displayed whatever was stated (a user who set a storage is
+        told so)."""
+        if self.bone_dark:
             self.storage_from = STORAGE_FROM_IMAGE if stated is None else stated_by
-        else:  # used as displayed, whatever was stated; a user who set a storage is told so
+        else:
             self.storage_from = STORAGE_SET_UNUSED if stated is not None and stated_by == STORAGE_FROM_USER \
                 else STORAGE_FROM_IMAGE
 

@@ -91,15 +91,18 @@ def _circle(u: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
     return cu, cv, float(np.sqrt(max(cu * cu + cv * cv - f, 0.0)))
 
 
-def exposed_field(pixels: np.ndarray, setting: str = "auto") -> np.ndarray:
-    """The field a registration uses (``FIELDS``): ``field_mask`` when "auto", else every pixel."""
-    return field_mask(pixels) if setting == "auto" else np.ones(np.shape(pixels), bool)
+def exposed_field(found: np.ndarray, setting: str = "auto") -> np.ndarray:
+    """The field a registration uses (``FIELDS``): the one ``found`` (``field_mask``) when "auto", else every pixel.
+    Whichever is used, the detector's shape is the found field's (``round_field``): an intensifier stays one, its
+    pincushion estimated, when the user takes the whole image."""
+    return found if setting == "auto" else np.ones(found.shape, bool)
 
 
 def field_record(mask: np.ndarray, round_: bool, setting: str = "auto") -> dict:
-    """What result.json keeps of the field used (``inputs.xray_field``): how it was decided (``setting``), its shape
-    (round: an intensifier's, ``round_field``), the fraction of the image it covers and its bounding box
-    [first column, first row, last column, last row] in px of the registered image (0-based pixel centres)."""
+    """What result.json keeps of the field used (``inputs.xray_field``): how it was decided (``setting``), the shape
+    of the field found (round: an intensifier's, ``round_field``), the fraction of the image the field used covers
+    and its bounding box [first column, first row, last column, last row] in px of the registered image (0-based
+    pixel centres)."""
     rows, cols = np.nonzero(mask)
     box = [int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max())] if len(rows) else None
     return {"decided_by": "image" if setting == "auto" else "user (the whole image)",

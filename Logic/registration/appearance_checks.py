@@ -154,7 +154,8 @@ def _other_appearance(state: RegistrationState) -> Appearance:
     orientation verdict measured under that polarity; a bone-dark image converted as the polarity check at the clicks
     converted it."""
     a = state.appearance
-    return a.other_polarity(state.click_polarity.dark_storage, _database_orientation(state, not a.bone_dark))
+    return a.other_polarity(state.click_polarity.dark_storage, _database_orientation(state, not a.bone_dark),
+                            _stated(state))
 
 
 def _judged(winner: LabellingFit, labellings: list) -> bool:

@@ -43,7 +43,7 @@ from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose, nominal_geom
 from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
 from carmreg.logic.image.appearance import POLARITIES
-from carmreg.logic.image.field import FIELDS, exposed_field, round_field
+from carmreg.logic.image.field import FIELDS, exposed_field, field_mask, round_field
 from carmreg.logic.image.prepare import EQUALISED, STORAGES, attenuation, bin_image_to, bin_mask_to, coarse_factor
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
@@ -203,8 +203,8 @@ class CarmRegLogic:
             raise RegistrationError(f"storage {params.storage!r}: use auto, {' or '.join(STORAGES)}")
         if params.xray_field not in FIELDS:
             raise RegistrationError(f"field {params.xray_field!r}: use {' or '.join(FIELDS)}")
-        mask = exposed_field(xray.pixels, params.xray_field)
-        round_ = round_field(mask)
+        found = field_mask(xray.pixels)
+        mask, round_ = exposed_field(found, params.xray_field), round_field(found)
         if round_ and not distortion_given(intrinsics):
             notes = [*notes, UNCORRECTED_INTENSIFIER]
         appearance = initial_appearance(xray, params)

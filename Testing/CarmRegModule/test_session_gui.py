@@ -31,6 +31,8 @@ def test_session_round_trip_restores_data_geometry_and_points(window, synthetic_
     _load_case(window, synthetic_case)
     window.apply_geometry({"sdd_mm": 1010.0})
     window.xray_store.add("L3", [118.0, 222.5])
+    window.registration_panel.set_storage("linear-intensity")  # the X-ray settings travel with the session
+    window.registration_panel.set_field("whole")
     path = window.save_session(tmp_path / "case")
     assert path.name == "case.carmreg.json"
     assert not window.is_dirty() and window.windowTitle() == "CarmReg - case.carmreg.json[*]"
@@ -50,6 +52,8 @@ def test_session_round_trip_restores_data_geometry_and_points(window, synthetic_
             np.testing.assert_allclose(a.position, b.position, atol=1e-9)
         assert other.xray_store.labels() == ["T12", "L1", "L2", "L3"]
         np.testing.assert_allclose(other.xray_store.find("L3").position, [118.0, 222.5])
+        chosen = other.registration_parameters()
+        assert (chosen.polarity, chosen.storage, chosen.xray_field) == ("auto", "linear-intensity", "whole")
         assert not other.is_dirty()
         assert other.undo_stack.count() == 0  # opening is not an undoable edit
     finally:

@@ -94,19 +94,19 @@ def test_a_round_field_is_told_from_a_rectangular_one(mask, round_):
 
 def test_the_field_used_is_found_or_the_whole_image_as_the_user_says_and_recorded_so():
     """``exposed_field``: found (``field_mask``) unless the user says the whole image is exposed; ``field_record``:
-    how it was decided, its shape, the fraction of the image and its box in px (column, row)."""
+    how it was decided, the found field's shape, the fraction of the image used and its box in px (column, row)."""
     v, u = np.mgrid[0:120, 0:160]
     anatomy = 500.0 + 300.0 * np.sin(u / 7.0) * np.cos(v / 9.0)  # the field is not flat; its shadow is
     image = np.where(_disc((120, 160), (60, 70), 50), anatomy, 0.0)
-    found = exposed_field(image)
-    assert round_field(found) and exposed_field(image, "whole").all()
+    found = exposed_field(field_mask(image))
+    assert round_field(found) and exposed_field(found, "whole").all()
     record = field_record(found, round_field(found))
     assert (record["decided_by"], record["shape"]) == ("image", "round")
     assert record["exposed_fraction"] == pytest.approx(np.pi * 50**2 / (120 * 160), rel=0.1)
     u0, v0, u1, v1 = record["box_px"]
     assert 19 <= u0 <= 25 and 115 <= u1 <= 120 and 9 <= v0 <= 20 and 100 <= v1 <= 111  # (column, row): the disc's
-    whole = field_record(np.ones((120, 160), bool), False, "whole")
-    assert whole == {"decided_by": "user (the whole image)", "shape": "rectangular", "exposed_fraction": 1.0,
+    whole = field_record(exposed_field(found, "whole"), round_field(found), "whole")  # the shape: the one found
+    assert whole == {"decided_by": "user (the whole image)", "shape": "round", "exposed_fraction": 1.0,
                      "box_px": [0, 0, 159, 119]}
 
 
@@ -181,6 +181,13 @@ def test_the_users_storage_wins_over_the_files_and_the_images_and_is_said_to_be_
     bright.set_storage(gc, *stated_storage(stated_lin, "linear-intensity"))  # used as displayed, and told so
     assert (bright.storage, bright.storage_from) == ("log-display", STORAGE_SET_UNUSED)
     assert "(the storage set applies to bone-dark images only)" in bright.summary()
+    user = stated_storage(stated_lin, "linear-intensity")  # tried under the other polarity: its own source
+    as_bright = a.other_polarity("linear-intensity", {"as-stored": 0.5}, user)
+    assert (as_bright.polarity, as_bright.storage, as_bright.storage_from) == ("bone-bright", "log-display",
+                                                                              STORAGE_SET_UNUSED)
+    as_dark = bright.other_polarity("linear-intensity", {"as-stored": 0.5}, user)
+    assert (as_dark.polarity, as_dark.storage, as_dark.storage_from) == ("bone-dark", "linear-intensity",
+                                                                        STORAGE_FROM_USER)
 
 
 def test_without_clicks_a_refined_lead_under_0_22_is_used_but_not_clear():
