@@ -168,8 +168,9 @@ def _window_geometry(args) -> dict:
 
 
 def _registration_args(p: argparse.ArgumentParser) -> None:
+    from carmreg.logic.image.appearance import POLARITY_SETTINGS
     from carmreg.logic.image.field import FIELDS
-    from carmreg.logic.image.prepare import STORAGES
+    from carmreg.logic.image.prepare import STORAGE_SETTINGS
     from carmreg.logic.similarity.metrics import METRICS
 
     p.add_argument("--metric", choices=METRICS, default="gc", help="spatial-search similarity (default gc)")
@@ -178,10 +179,10 @@ def _registration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-level-check", action="store_true",
                    help="named clicks: skip the wrong-level check (registration redone with the names shifted "
                    "+-1 and +-2 levels); unnamed clicks are always identified")
-    p.add_argument("--polarity", choices=("auto", "bone-dark", "bone-bright"), default="auto",
+    p.add_argument("--polarity", choices=POLARITY_SETTINGS, default="auto",
                    help="how the X-ray shows bone (default auto: found from the image against the CT's DRRs and "
                    "recorded in result.json; set it only to override)")
-    p.add_argument("--storage", choices=("auto", *STORAGES), default="auto",
+    p.add_argument("--storage", choices=STORAGE_SETTINGS, default="auto",
                    help="how a bone-dark X-ray stores its values: linear-intensity (the detector's intensity, "
                    "converted with -log) or log-display (already log-like); default auto: as its DICOM states, else "
                    "found from the image against the CT's DRRs and recorded in result.json; set it only to override")

@@ -15,9 +15,9 @@ import os
 
 import numpy as np
 
-from carmreg.logic.image.appearance import POLARITIES
+from carmreg.logic.image.appearance import POLARITY_SETTINGS
 from carmreg.logic.image.field import FIELDS
-from carmreg.logic.image.prepare import STORAGES
+from carmreg.logic.image.prepare import STORAGE_SETTINGS
 from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import METRICS
 
@@ -38,8 +38,8 @@ with no DistortionMm given gets its pincushion estimated from the image (``regis
 auto (found from the image against the CT), bone-dark or bone-bright; Storage (a bone-dark X-ray's): auto (as its
 DICOM states, else found from the image), linear-intensity or log-display; Field: auto (the exposed field found from
 the image) or whole; XrayOrientation: ``image.turn.ORIENTATIONS`` (module docstring)."""
-POLARITY_CHOICES = ("auto", *POLARITIES)
-STORAGE_CHOICES = ("auto", *STORAGES)
+POLARITY_CHOICES = POLARITY_SETTINGS
+STORAGE_CHOICES = STORAGE_SETTINGS
 FIELD_CHOICES = FIELDS
 ORIENTATION_CHOICES = tuple(ORIENTATIONS)
 
@@ -248,30 +248,25 @@ def parameters_from_node(parameter_node):
             raise ValueError(f"CarmReg parameter {name} = {text!r} is not a number; set it in the module panel") \
                 from None
 
-    metric = parameter_node.GetParameter("Metric") or "gc"
-    if metric not in METRICS:
-        raise ValueError(f"CarmReg parameter Metric = {metric!r}; choose one of {', '.join(METRICS)}")
-    return (number("SddMm"), number("PixelSpacingMm"), number("SodMm"), metric,
+    return (number("SddMm"), number("PixelSpacingMm"), number("SodMm"), _choice(parameter_node, "Metric", METRICS),
             (parameter_node.GetParameter("CheckLevels") or "true") == "true", number("DistortionMm", -np.inf))
 
 
 def display_from_node(parameter_node):
     """(polarity, storage, field, orientation) of a parameter node's X-ray: ``POLARITY_CHOICES``, ``STORAGE_CHOICES``,
     ``FIELD_CHOICES``, ``ORIENTATION_CHOICES``."""
-    polarity = parameter_node.GetParameter("Polarity") or "auto"
-    storage = parameter_node.GetParameter("Storage") or "auto"
-    field = parameter_node.GetParameter("Field") or "auto"
-    orientation = parameter_node.GetParameter("XrayOrientation") or "as-stored"
-    if polarity not in POLARITY_CHOICES:
-        raise ValueError(f"CarmReg parameter Polarity = {polarity!r}; choose one of {', '.join(POLARITY_CHOICES)}")
-    if storage not in STORAGE_CHOICES:
-        raise ValueError(f"CarmReg parameter Storage = {storage!r}; choose one of {', '.join(STORAGE_CHOICES)}")
-    if field not in FIELD_CHOICES:
-        raise ValueError(f"CarmReg parameter Field = {field!r}; choose one of {', '.join(FIELD_CHOICES)}")
-    if orientation not in ORIENTATIONS:
-        raise ValueError(f"CarmReg parameter XrayOrientation = {orientation!r}; choose one of "
-                         f"{', '.join(ORIENTATIONS)}")
-    return polarity, storage, field, orientation
+    return tuple(_choice(parameter_node, name, choices) for name, choices in (
+        ("Polarity", POLARITY_CHOICES), ("Storage", STORAGE_CHOICES), ("Field", FIELD_CHOICES),
+        ("XrayOrientation", ORIENTATION_CHOICES)))
+
+
+def _choice(parameter_node, name: str, choices: tuple) -> str:
+    """A parameter node's setting ``name``: one of ``choices``, the first when unset; anything else a ValueError in
+    words."""
+    value = parameter_node.GetParameter(name) or choices[0]
+    if value not in choices:
+        raise ValueError(f"CarmReg parameter {name} = {value!r}; choose one of {', '.join(choices)}")
+    return value
 
 
 def output_node(scene, parameter_node, role):

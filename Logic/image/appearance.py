@@ -167,6 +167,8 @@ from carmreg.logic.image.turn import JUDGED, ORIENTATIONS
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
+POLARITY_SETTINGS = ("auto", *POLARITIES)
+"""What the user may set the polarity to (``RegistrationParameters.polarity``): auto, found from the image, or one."""
 CLEAR_POLARITY_GC = 0.05    # GC gap of the database scores called clear (evidence when nothing was refined: a
 #                             polarity set by the user is checked against the database alone)
 CLEAR_REFINED_GC = 0.22     # GC gap of the refined scores (no clicks) called clear (tune half of the appearance

@@ -20,6 +20,8 @@ import numpy as np
 
 STORAGES = ("linear-intensity", "log-display")
 """How a bone-dark image can be stored (``attenuation``); ``appearance`` finds which."""
+STORAGE_SETTINGS = ("auto", *STORAGES)
+"""What the user may set the storage to (``RegistrationParameters.storage``): auto (the file's, else found) or one."""
 EQUALISED = "equalised"
 """The storage-free conversion of either polarity (module docstring)."""
 

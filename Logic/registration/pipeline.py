@@ -42,9 +42,16 @@ from carmreg.logic.errors import CancelledError, RegistrationError
 from carmreg.logic.geometry.camera import CarmIntrinsics, CarmPose, nominal_geometry
 from carmreg.logic.geometry.projection_distance import mpde_mm
 from carmreg.logic.geometry.volume import MuPyramid, Volume
-from carmreg.logic.image.appearance import POLARITIES
+from carmreg.logic.image.appearance import POLARITY_SETTINGS
 from carmreg.logic.image.field import FIELDS, exposed_field, field_mask, round_field
-from carmreg.logic.image.prepare import EQUALISED, STORAGES, attenuation, bin_image_to, bin_mask_to, coarse_factor
+from carmreg.logic.image.prepare import (
+    EQUALISED,
+    STORAGE_SETTINGS,
+    attenuation,
+    bin_image_to,
+    bin_mask_to,
+    coarse_factor,
+)
 from carmreg.logic.io.array_cache import ArrayCache
 from carmreg.logic.io.landmarks import Landmarks2D, Landmarks3D, Pairs
 from carmreg.logic.io.xray import XrayImage
@@ -197,12 +204,11 @@ class CarmRegLogic:
         xray_landmarks = ideal_clicks(xray_landmarks, intrinsics)
         pairs, notes = given_pairs(ct_landmarks, xray_landmarks)
         geometry = nominal_geometry(intrinsics, ct, xray.sod_mm)
-        if params.polarity not in ("auto", *POLARITIES):
-            raise RegistrationError(f"polarity {params.polarity!r}: use auto, {' or '.join(POLARITIES)}")
-        if params.storage not in ("auto", *STORAGES):
-            raise RegistrationError(f"storage {params.storage!r}: use auto, {' or '.join(STORAGES)}")
-        if params.xray_field not in FIELDS:
-            raise RegistrationError(f"field {params.xray_field!r}: use {' or '.join(FIELDS)}")
+        for what, value, settings in (("polarity", params.polarity, POLARITY_SETTINGS),
+                                      ("storage", params.storage, STORAGE_SETTINGS),
+                                      ("field", params.xray_field, FIELDS)):
+            if value not in settings:
+                raise RegistrationError(f"{what} {value!r}: use {', '.join(settings[:-1])} or {settings[-1]}")
         found = field_mask(xray.pixels)
         mask, round_ = exposed_field(found, params.xray_field), round_field(found)
         if round_ and not distortion_given(intrinsics):
