@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from carmreg.logic.similarity.gc_kernel import gc_scores
+
 METRICS = ("gc", "go", "ncc", "gi", "mi", "psnr", "ssim")
 
 
@@ -35,25 +37,6 @@ def _zscore(values: np.ndarray) -> np.ndarray:
     v = values - values.mean(axis=-1, keepdims=True)
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-12)
-
-
-def _correlation(values: np.ndarray, unit: np.ndarray) -> np.ndarray:
-    """Pearson correlation of each row of ``values`` (n, m) with ``unit`` (m,), already zero-mean and unit-norm
-    (``_zscore``), -> (n,); or with each such column of ``unit`` (m, k) -> (n, k). 0 for a constant row."""
-    return _correlation_centred(*_centred(values), unit)
-
-
-def _centred(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of ``values`` (n, m) minus their means, and their norms (n,): ``_correlation``'s half that does not
-    depend on the unit vector (shared when one stack is correlated with several)."""
-    centred = values - values.mean(axis=1, keepdims=True)
-    return centred, np.linalg.norm(centred, axis=1)
-
-
-def _correlation_centred(centred: np.ndarray, norm: np.ndarray, unit: np.ndarray) -> np.ndarray:
-    """``_correlation`` from ``_centred``'s rows and norms."""
-    norm = norm.reshape((-1,) + (1,) * (unit.ndim - 1))
-    return np.divide(centred @ unit, norm, out=np.zeros((len(centred),) + unit.shape[1:]), where=norm > 1e-12)
 
 
 def _unit_range(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -142,74 +125,41 @@ class GradientCorrelation:
     """GC against one fixed image, its half prepared once (an optimiser scores thousands of DRRs against the
     same X-ray): 0.5 (NCC(du F, du M) + NCC(dv F, dv M)) over the pixels whose 3x3 neighbourhood lies in the
     mask, du and dv central differences along columns and rows. NCC ignores a positive scale and an offset, so
-    the derivatives are taken of the images as they are (the same numbers as of z-scored images)."""
+    the derivatives are taken of the images as they are (the same numbers as of z-scored images). The moving
+    half is ``gc_kernel.gc_scores`` (compiled, sums in float64); the fixed half is made here in the fixed image's
+    dtype."""
 
     def __init__(self, fixed: np.ndarray, mask: np.ndarray):
         inner = ndimage.binary_erosion(mask, np.ones((3, 3), bool))  # border_value 0: never an image edge
         self.index, self.width = np.flatnonzero(inner), mask.shape[1]
-        self.fixed_u, self.fixed_v = ((_zscore(g)[0] for g in self._derivatives(fixed[None])) if self.index.size
-                                      else (np.zeros(0), np.zeros(0)))  # nothing to compare: every score is 0
-
-    def _derivatives(self, stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(2 du, 2 dv) at the inner pixels, (n, m) each: f[i + 1] - f[i - 1] and f[i + w] - f[i - w]. The
-        differences are taken over whole rows of the flattened images (contiguous, vectorised) and the inner pixels
-        gathered once from them: the same numbers in (n, m) arrays of the same memory layout as differences of two
-        gathers (so the correlations' sums repeat bit for bit), 2-4 times faster. Inner pixels have every
-        neighbour in the image (the erosion), so i - w >= 0 and i + w < h w."""
-        flat, i, w = stack.reshape(len(stack), -1), self.index, self.width
-        return (flat[:, 2:] - flat[:, :-2])[:, i - 1], (flat[:, 2 * w:] - flat[:, :-2 * w])[:, i - w]
+        flat, i, w = np.asarray(fixed).ravel(), self.index, self.width
+        self.fixed_u, self.fixed_v = ((_zscore(flat[i + 1] - flat[i - 1]), _zscore(flat[i + w] - flat[i - w]))
+                                      if i.size else (np.zeros(0), np.zeros(0)))  # nothing to compare: scores 0
 
     def __call__(self, moving: np.ndarray) -> np.ndarray:
-        if self.index.size == 0:
-            return np.zeros(len(moving))
-        mu, mv = self._derivatives(moving)
-        return 0.5 * (_correlation(mu, self.fixed_u) + _correlation(mv, self.fixed_v))
+        return gc_scores(moving, self.index, self.width, self.fixed_u[None], self.fixed_v[None])[:, 0]
 
 
 def gc(fixed, moving, mask):
     return GradientCorrelation(fixed, mask)(moving)
 
 
-def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, chunk: int = 512,
-            dtype=np.float32) -> list[np.ndarray]:
-    """``[similarity("gc", f, moving, mask, chunk, dtype) for f in fixed_images]`` bit for bit, with the moving
-    images' derivatives and their centring made once per chunk for every fixed image (each correlation is then the
-    same matrix-vector product as in ``similarity``): several GC maps over a DRR database for little more than
-    one."""
-    prepared = [GradientCorrelation(np.asarray(f, dtype=dtype), np.asarray(mask, bool)) for f in fixed_images]
-    moving = np.asarray(moving, dtype=dtype).reshape(-1, *np.shape(fixed_images[0]))
-    if prepared[0].index.size == 0:
-        return [np.zeros(len(moving)) for _ in prepared]
-    out = [[] for _ in prepared]
-    for centred_u, centred_v in _centred_derivatives(prepared[0], moving, chunk):
-        for scores, g in zip(out, prepared, strict=True):
-            along_u = _correlation_centred(*centred_u, g.fixed_u)
-            along_v = _correlation_centred(*centred_v, g.fixed_v)
-            scores.append(0.5 * (along_u + along_v))
-    return [np.concatenate(scores).astype(np.float64) for scores in out]
+def gc_maps(fixed_images: list, moving: np.ndarray, mask: np.ndarray, dtype=np.float32) -> list[np.ndarray]:
+    """``[similarity("gc", f, moving, mask, dtype=dtype) for f in fixed_images]`` bit for bit, with each moving
+    image read once for every fixed image (``gc_against_each``): several GC maps over a DRR database for little
+    more than one."""
+    return list(gc_against_each(np.asarray(fixed_images), moving, mask, dtype).T)
 
 
-def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, chunk: int = 512) -> np.ndarray:
+def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, dtype=np.float32) -> np.ndarray:
     """(n, k) GC of every moving image (n, h, w) with every fixed image (k, h, w) on one ``mask``: column j is
-    ``gc(fixed[j], moving, mask)`` up to the order of float sums (one matrix product for all k, where ``gc_maps``
-    makes k matrix-vector products), the moving images' derivatives taken once for all k (a GC map over a DRR
-    database for k turns of the X-ray costs about one map)."""
-    prepared = [GradientCorrelation(f, mask) for f in np.asarray(fixed, np.float32)]
-    if prepared[0].index.size == 0:
-        return np.zeros((len(moving), len(prepared)))
-    fixed_u = np.stack([g.fixed_u for g in prepared], axis=1)  # (m, k) unit columns
-    fixed_v = np.stack([g.fixed_v for g in prepared], axis=1)
-    out = [0.5 * (_correlation_centred(*centred_u, fixed_u) + _correlation_centred(*centred_v, fixed_v))
-           for centred_u, centred_v in _centred_derivatives(prepared[0], np.asarray(moving, np.float32), chunk)]
-    return np.concatenate(out).astype(np.float64)
-
-
-def _centred_derivatives(prepared: GradientCorrelation, moving: np.ndarray, chunk: int):
-    """Per ``chunk`` images of ``moving``: their two derivative images at ``prepared``'s inner pixels, each as
-    ``_centred`` gives it (rows minus their means, and the norms); what every fixed image on that field shares."""
-    for i in range(0, len(moving), chunk):
-        mu, mv = prepared._derivatives(moving[i:i + chunk])
-        yield _centred(mu), _centred(mv)
+    ``gc(fixed[j], moving, mask)`` bit for bit, the fixed images taken in ``dtype`` (``gc_kernel``: each moving
+    image read once for all k, so a GC map over a DRR database for k turns of the X-ray costs about one map)."""
+    prepared = [GradientCorrelation(f, mask) for f in np.asarray(fixed, dtype=dtype)]
+    first = prepared[0]
+    fixed_u = np.stack([g.fixed_u for g in prepared])  # (k, m) unit rows
+    fixed_v = np.stack([g.fixed_v for g in prepared])
+    return gc_scores(moving, first.index, first.width, fixed_u, fixed_v)
 
 
 def go(fixed, moving, mask):
@@ -231,8 +181,10 @@ def prepare(metric: str, fixed: np.ndarray, mask: np.ndarray | None = None, chun
     """``scores(moving)`` -> (n,) float64 similarity of ``moving`` (n, h, w) against ``fixed`` (h, w): the same
     numbers as ``similarity``, with whatever depends only on ``fixed`` and ``mask`` computed here, once.
 
-    ``dtype`` float64 makes the scores reproducible across processes to ~1e-15 (float32 reductions in BLAS and
-    SIMD loops can round differently with memory alignment, which flips close rankings in an optimiser).
+    ``dtype``: the precision the images are taken in. GC sums in float64 whatever it is, in a fixed order
+    (``gc_kernel``), and reads a float32 stack as it is (exact in either precision); for the other metrics float64
+    makes the scores reproducible across processes to ~1e-15 (float32 reductions in BLAS and SIMD loops can round
+    differently with memory alignment, which flips close rankings in an optimiser).
     """
     if metric not in FUNCTIONS:
         raise ValueError(f"unknown metric {metric!r}; choose one of {', '.join(METRICS)}")
@@ -245,7 +197,10 @@ def prepare(metric: str, fixed: np.ndarray, mask: np.ndarray | None = None, chun
             return FUNCTIONS[metric](fixed, moving, mask)
 
     def scores(moving: np.ndarray) -> np.ndarray:
-        moving = np.asarray(moving, dtype=dtype).reshape(-1, *fixed.shape)
+        moving = np.asarray(moving)
+        if not (metric in PREPARED and moving.dtype == np.float32):
+            moving = moving.astype(dtype, copy=False)
+        moving = moving.reshape(-1, *fixed.shape)
         return np.concatenate([score(moving[i:i + chunk]) for i in range(0, len(moving), chunk)]).astype(np.float64)
 
     return scores

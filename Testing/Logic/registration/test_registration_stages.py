@@ -72,22 +72,32 @@ def test_gc_is_the_mean_correlation_of_the_two_derivative_images_inside_the_erod
     assert similarity("gc", fixed, 3.0 - 2.0 * moving, mask, dtype=np.float64) == pytest.approx(-scores, abs=1e-12)
 
 
-def test_gc_derivatives_are_the_differences_of_two_gathers_bit_for_bit():
-    """The prepared GC takes its central differences over whole rows and gathers the inner pixels once: the same
-    numbers, dtype and memory layout as the differences of two gathers, so every recorded score repeats."""
+def test_compiled_gc_repeats_numpy_form_and_reads_float32_as_its_float64_copy():
+    """``gc_kernel`` (the prepared GC's moving half) gives the numpy form's numbers (centred derivatives, norms, a
+    product) to rounding, the same scores for a float32 stack and its float64 copy, the same on the calling thread
+    and in parallel, and 0 along an axis whose derivatives are constant."""
+    from carmreg.logic.similarity import gc_kernel
     from carmreg.logic.similarity.metrics import GradientCorrelation
 
     rng = np.random.default_rng(2)
     stack = rng.normal(size=(5, 37, 41)).astype(np.float32)
     yy, xx = np.mgrid[:37, :41]
     field = (yy - 18) ** 2 + (xx - 20) ** 2 < 17 ** 2
-    gc = GradientCorrelation(stack[0], field)
-    flat, i = stack.reshape(5, -1), gc.index
-    du, dv = gc._derivatives(stack)
-    for new, old in ((du, flat[:, i + 1] - flat[:, i - 1]), (dv, flat[:, i + 41] - flat[:, i - 41])):
-        np.testing.assert_array_equal(new, old)
-        assert new.strides == old.strides and new.dtype == old.dtype == np.float32
-    assert du.shape == (5, i.size) and i.size > 500
+    gc = GradientCorrelation(stack[0].astype(np.float64), field)
+    flat, i = stack.reshape(5, -1).astype(np.float64), gc.index
+    expected = []
+    for du, dv in zip(flat[:, i + 1] - flat[:, i - 1], flat[:, i + 41] - flat[:, i - 41], strict=True):
+        du, dv = du - du.mean(), dv - dv.mean()
+        expected.append(0.5 * (du @ gc.fixed_u / np.linalg.norm(du) + dv @ gc.fixed_v / np.linalg.norm(dv)))
+    scores = gc(stack)
+    assert scores == pytest.approx(expected, abs=1e-13) and scores[0] == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_array_equal(scores, gc(stack.astype(np.float64)))
+    fixed_u, fixed_v = gc.fixed_u[None], gc.fixed_v[None]
+    in_parallel = np.zeros((5, 1))
+    gc_kernel._parallel(stack.reshape(5, -1), i, 41, fixed_u, fixed_v, in_parallel)
+    np.testing.assert_array_equal(in_parallel[:, 0], scores)
+    ramp = np.broadcast_to(np.arange(41, dtype=np.float32), (37, 41))  # du constant, dv zero: nothing to correlate
+    assert gc(ramp[None]).tolist() == [0.0]
 
 
 def test_several_gc_maps_in_one_pass_are_each_map_bit_for_bit():
@@ -101,7 +111,7 @@ def test_several_gc_maps_in_one_pass_are_each_map_bit_for_bit():
     field = np.zeros((30, 28), bool)
     field[2:27, 3:25] = True
     for dtype in (np.float32, np.float64):
-        shared = gc_maps(fixed, moving, field, chunk=10, dtype=dtype)
+        shared = gc_maps(fixed, moving, field, dtype=dtype)
         for f, scores in zip(fixed, shared, strict=True):
             np.testing.assert_array_equal(scores, similarity("gc", f, moving, field, chunk=10, dtype=dtype))
         assert shared[0].dtype == np.float64 and np.ptp(shared[0]) > 0.1
