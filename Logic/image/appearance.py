@@ -66,9 +66,9 @@ Orientation
 -----------
 A C-arm display can be mirrored left-right or turned (display settings), which no header records. With the
 polarity's sign s, the rank image is also scored in the other orientations that keep its shape - mirrored
-left-right, flipped up-down, turned 180 degrees, and on a square detector turned 90 degrees either way
-(``turn.JUDGED``; the two transposes the user may turn a file by are not scored, even on a square detector) -
-against every other DRR of the database (half the grid each way, enough to find the best)::
+left-right, flipped up-down, turned 180 degrees, and on a square detector turned 90 degrees either way and the two
+transposes (a quarter turn and a mirror; ``turn.ORIENTATIONS``, scored since stop 58) - against every other DRR of
+the database (half the grid each way, enough to find the best)::
 
     score(o) = max_k s GC(o(R), D_k)
 
@@ -163,7 +163,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from carmreg.logic.image.prepare import STORAGES, attenuation, bin_image_to, bin_mask_to, rank_image
-from carmreg.logic.image.turn import JUDGED, ORIENTATIONS
+from carmreg.logic.image.turn import ORIENTATIONS
 from carmreg.logic.similarity.metrics import gc_maps, similarity
 
 POLARITIES = ("bone-dark", "bone-bright")
@@ -470,7 +470,7 @@ def dark_storage(gc_by_storage: dict, stated: str | None = None) -> str:
 
 def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarray, factor: int,
                        bone_dark: bool) -> dict:
-    """score(o) for every orientation o of ``turn.JUDGED`` that keeps the image's shape (module docstring);
+    """score(o) for every orientation o of ``turn.ORIENTATIONS`` that keeps the image's shape (module docstring);
     ``drrs_grid``: (ny, nz, rows, cols)."""
     half = drrs_grid[::2, ::2]
     rows, cols = half.shape[2:]
@@ -478,7 +478,7 @@ def orientation_scores(pixels: np.ndarray, mask: np.ndarray, drrs_grid: np.ndarr
     sign = -1.0 if bone_dark else 1.0
     ranked = rank_image(pixels, mask)
     out = {}
-    for name in JUDGED:
+    for name in ORIENTATIONS:
         image, field = ORIENTATIONS[name](ranked), ORIENTATIONS[name](mask)
         if image.shape != ranked.shape:  # a quarter turn of an image that is not square
             continue

@@ -31,16 +31,11 @@ ORIENTATIONS = {"as-stored": lambda a: a, "mirrored-left-right": lambda a: a[:, 
                 "turned-270-and-mirrored": lambda a: np.rot90(a, -1)[:, ::-1]}
 """The eight orientations an image keeps its pixel grid in (the turns of a square and their mirrors; np.rot90 turns
 counter-clockwise). The last two transpose the image: ``turned-270-and-mirrored`` about its main diagonal,
-``turned-90-and-mirrored`` about the other. Only ``JUDGED`` are compared with the CT by the image checks."""
+``turned-90-and-mirrored`` about the other. The image checks compare every one that keeps a detector's shape with
+the CT (``appearance.orientation_scores``: all eight on a square detector)."""
 
 QUARTER_TURNED = ("turned-90", "turned-270", "turned-90-and-mirrored", "turned-270-and-mirrored")
 """The orientations that swap the image's columns and rows (and so its size and pixel spacing)."""
-
-JUDGED = ("as-stored", "mirrored-left-right", "flipped-up-down", "turned-180", "turned-90", "turned-270")
-"""The orientations the image checks compare with the CT (``appearance.orientation_scores``): a display mirrored,
-flipped or turned. A transposed display (a quarter turn and a mirror) is not judged from the image: with clicks the
-preflight refuses it as turned a quarter (``preflight.across``), and once turned back the mirror is found; the two
-transposing turns are there for the user to turn such a file back in one step (``composed`` names them)."""
 
 
 def orient_uv(uv_px: np.ndarray, name: str, size_px: tuple[int, int]) -> np.ndarray:

@@ -1,7 +1,7 @@
 """`carmreg register --orient-xray`: an X-ray whose display was stored transposed (a quarter turn and a mirror) is
 turned back, with its clicks, before registering (``image.turn``), and registers as the acquisition itself does; the
 turn is recorded. One whose clicks run across the image is refused at once, naming the quarter turn that undoes it
-(``preflight.across``)."""
+(``preflight.across``); without clicks, the image checks find the transpose and refuse it, naming it."""
 
 import json
 
@@ -77,3 +77,24 @@ def test_a_display_stored_turned_a_quarter_is_refused_at_once_naming_the_turn_th
     assert err.startswith("carmreg: error: the X-ray clicks run across the image (") and err.endswith(
         "--orient-xray turned-270")
     np.testing.assert_allclose(orient_uv(stored_uv, "turned-270", xray.size_px[::-1]), truth.uv_px, atol=1e-9)
+
+
+def test_a_display_stored_transposed_without_clicks_is_refused_naming_the_transpose(sample_case_dir, tmp_path,
+                                                                                    drr_cache_dir, capsys):
+    """The sample X-ray written transposed (rows for columns), registered without clicks: the database's orientation
+    scores include the transposes (``appearance.orientation_scores``), so the image is refused (exit 1, no level
+    named) as matching the CT transposed, ``--orient-xray turned-270-and-mirrored`` advised (until stop 58 it ended
+    ambiguous, every scored orientation at 0.18-0.26 GC)."""
+    xray = load_xray(sample_case_dir / "xray.dcm")
+    intrinsics = turned_intrinsics(xray.intrinsics, "turned-270-and-mirrored")
+    write_xray_dicom(tmp_path / "transposed.dcm", np.ascontiguousarray(xray.pixels.astype(np.uint16).T), intrinsics,
+                     sod_mm=xray.sod_mm)
+    code = main(["register", "--ct", str(sample_case_dir / "ct.nrrd"), "--ct-landmarks",
+                 str(sample_case_dir / "ct_centroids.mrk.json"), "--xray", str(tmp_path / "transposed.dcm"),
+                 "--no-clicks", "--out", str(tmp_path / "out"), "--cache-dir", drr_cache_dir])
+    doc = json.loads((tmp_path / "out" / "result.json").read_text())
+    scores = doc["appearance"]["orientation_scores"]
+    assert code == 1 and not doc["ok"] and doc["level_check"]["status"] != "confident"
+    assert doc["appearance"]["orientation"] == "turned-270-and-mirrored"
+    assert scores["turned-270-and-mirrored"] - scores["as-stored"] > 0.2 and len(scores) == 8
+    assert "--orient-xray turned-270-and-mirrored" in capsys.readouterr().out
