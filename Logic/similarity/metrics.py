@@ -39,6 +39,13 @@ def _zscore(values: np.ndarray) -> np.ndarray:
     return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-12)
 
 
+def _taken_in(moving: np.ndarray, dtype, gc: bool) -> np.ndarray:
+    """``moving`` in the precision ``dtype`` the images are taken in; GC (``gc``) reads a float32 stack as it is
+    (exact in either precision: ``gc_kernel`` differences and sums in float64)."""
+    moving = np.asarray(moving)
+    return moving if gc and moving.dtype == np.float32 else moving.astype(dtype, copy=False)
+
+
 def _unit_range(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Scale each image to [0, 1] by its 1st-99th percentile inside the mask (clipped)."""
     vals = _masked(stack, mask)
@@ -159,7 +166,7 @@ def gc_against_each(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray, dty
     first = prepared[0]
     fixed_u = np.stack([g.fixed_u for g in prepared])  # (k, m) unit rows
     fixed_v = np.stack([g.fixed_v for g in prepared])
-    return gc_scores(moving, first.index, first.width, fixed_u, fixed_v)
+    return gc_scores(_taken_in(moving, dtype, True), first.index, first.width, fixed_u, fixed_v)
 
 
 def go(fixed, moving, mask):
@@ -197,10 +204,7 @@ def prepare(metric: str, fixed: np.ndarray, mask: np.ndarray | None = None, chun
             return FUNCTIONS[metric](fixed, moving, mask)
 
     def scores(moving: np.ndarray) -> np.ndarray:
-        moving = np.asarray(moving)
-        if not (metric in PREPARED and moving.dtype == np.float32):
-            moving = moving.astype(dtype, copy=False)
-        moving = moving.reshape(-1, *fixed.shape)
+        moving = _taken_in(moving, dtype, metric in PREPARED).reshape(-1, *fixed.shape)
         return np.concatenate([score(moving[i:i + chunk]) for i in range(0, len(moving), chunk)]).astype(np.float64)
 
     return scores
