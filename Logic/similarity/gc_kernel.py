@@ -78,12 +78,10 @@ def _parallel(moving, index, width, fixed_u, fixed_v, out):
 
 def gc_scores(moving: np.ndarray, index: np.ndarray, width: int, fixed_u: np.ndarray, fixed_v: np.ndarray
               ) -> np.ndarray:
-    """(n, k) float64 GC of each moving image (n, h, w) (float32 or float64) with each fixed image whose unit
-    derivatives at the inner pixels ``index`` (m,) (flat indices into an image of ``width`` columns) are the rows
-    of ``fixed_u`` and ``fixed_v`` (k, m); see the module docstring."""
+    """(n, k) float64 GC of each moving image (n, h, w) (float32 or float64: ``metrics._taken_in``) with each fixed
+    image whose unit derivatives at the inner pixels ``index`` (m,) (flat indices into an image of ``width``
+    columns) are the rows of ``fixed_u`` and ``fixed_v`` (k, m); see the module docstring."""
     moving = np.asarray(moving)
-    if moving.dtype not in (np.float32, np.float64):
-        moving = moving.astype(np.float64)
     flat = np.ascontiguousarray(moving.reshape(len(moving), -1))
     out = np.zeros((len(flat), len(fixed_u)))
     if len(flat) == 0 or index.size == 0:
