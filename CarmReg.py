@@ -101,6 +101,14 @@ def slicer_nodes():
     return carmreg.slicer_nodes
 
 
+def xray_settings():
+    """``carmreg.xray_settings`` (the X-ray settings' keys and words, as the window shows them)."""
+    import_carmreg()
+    import carmreg.xray_settings
+
+    return carmreg.xray_settings
+
+
 def read_requirements(path):
     """Requirement lines of a requirements.txt (no comments, blanks or pip options)."""
     with open(path, encoding="utf-8") as f:
@@ -257,23 +265,23 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.metric.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("Similarity metric:", ui.metric)
         ui.polarity = qt.QComboBox()
-        for key in slicer_nodes().POLARITY_CHOICES:
-            ui.polarity.addItem({"auto": "find from the image"}.get(key, key.replace("-", " ")), key)
+        for key, words in xray_settings().POLARITY_CHOICES:
+            ui.polarity.addItem(words, key)
         ui.polarity.toolTip = ("How the X-ray shows bone. CarmReg finds it from the image against the CT and says "
                                "how clearly; set it only to override")
         ui.polarity.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("X-ray polarity:", ui.polarity)
         ui.storage = qt.QComboBox()
-        for key in slicer_nodes().STORAGE_CHOICES:
-            ui.storage.addItem({"auto": "as the file states, else found"}.get(key, key.replace("-", " ")), key)
+        for key, words in xray_settings().STORAGE_CHOICES:
+            ui.storage.addItem(words, key)
         ui.storage.toolTip = ("How a bone-dark X-ray stores its values (linear intensity: the detector's own; log "
                               "display: processed). CarmReg takes what the DICOM states, else finds it from the image; "
                               "set it only to override")
         ui.storage.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
         form.addRow("X-ray storage:", ui.storage)
         ui.field = qt.QComboBox()
-        for key in slicer_nodes().FIELD_CHOICES:
-            ui.field.addItem({"auto": "found from the image"}.get(key, f"the {key} image"), key)
+        for key, words in xray_settings().FIELD_CHOICES:
+            ui.field.addItem(words, key)
         ui.field.toolTip = ("Where the beam reached the detector. CarmReg finds the exposed field (the collimator's "
                             "or intensifier's shadow left out); choose the whole image when it leaves out anatomy")
         ui.field.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)

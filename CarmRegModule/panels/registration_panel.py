@@ -19,16 +19,7 @@ import numpy as np
 from qtpy import QtCore, QtWidgets
 
 from carmreg.logic.report.style import names_shown, status_ink
-
-POLARITY_CHOICES = (("auto", "Find from the image"), ("bone-dark", "Bone dark (fluoroscopy)"),
-                    ("bone-bright", "Bone bright (radiograph)"))
-"""The X-ray polarity settings (``RegistrationParameters.polarity``) and their words."""
-STORAGE_CHOICES = (("auto", "As the file states, else found"), ("log-display", "Log display (processed)"),
-                   ("linear-intensity", "Linear intensity (raw detector)"))
-"""The X-ray storage settings (``RegistrationParameters.storage``: auto or one of ``image.prepare.STORAGES``) and
-their words; a test pins the keys to ``STORAGES``."""
-FIELD_CHOICES = (("auto", "Found from the image"), ("whole", "The whole image"))
-"""The X-ray field settings (``RegistrationParameters.xray_field``: ``image.field.FIELDS``) and their words."""
+from carmreg.xray_settings import FIELD_CHOICES, POLARITY_CHOICES, STORAGE_CHOICES
 
 STAGE_TITLES = {"database": "Preparing the DRR database", "spatial": "Finding the spine in the image",
                 "levels": "Identifying the levels", "depth": "Estimating the magnification",

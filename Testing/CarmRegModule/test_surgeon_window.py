@@ -495,10 +495,10 @@ def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_
     """Register step: 'X-ray polarity', 'X-ray storage' and 'X-ray field' (auto by default) become
     RegistrationParameters.polarity, .storage and .field and are kept in a session; the Check step shows what the
     registration found (result.appearance), amber when not trusted."""
-    from carmreg.logic.image.appearance import decide_polarity
+    from carmreg.logic.image.appearance import POLARITY_SETTINGS, decide_polarity
     from carmreg.logic.image.field import FIELDS
     from carmreg.logic.image.prepare import STORAGES
-    from carmreg.panels.registration_panel import FIELD_CHOICES, STORAGE_CHOICES
+    from carmreg.xray_settings import FIELD_CHOICES, POLARITY_CHOICES, STORAGE_CHOICES
 
     win = window
     assert win.registration_parameters().polarity == "auto"
@@ -507,6 +507,7 @@ def test_the_polarity_setting_reaches_the_logic_and_a_session_and_the_found_one_
     assert win.registration_panel.parameters()["polarity"] == "bone-bright"
     win.registration_panel.set_polarity("nonsense")
     assert win.registration_parameters().polarity == "auto"
+    assert tuple(key for key, _ in POLARITY_CHOICES) == POLARITY_SETTINGS
     assert {key for key, _ in STORAGE_CHOICES} == {"auto", *STORAGES}  # every storage offered, and only those
     assert tuple(key for key, _ in FIELD_CHOICES) == FIELDS
     assert win.registration_parameters().storage == "auto"  # 'X-ray storage': the same way
