@@ -25,10 +25,11 @@ better under the other polarity than under the one those judgements chose), expl
 levels stage runs the contest again under the other polarity (``worth_other_polarity``,
 ``contest_under_other_polarity``) and takes it only when its winner, judged at the clicks too, confirms that
 polarity; it asks this first of the contest's leader before the searches for confidence, which then run only when
-the other polarity's contest is not taken (``CarmRegLogic._levels_at_clicks``). The appearance in use
-(``state.appearance``) always comes with the X-ray's attenuation image converted by it (``_use_appearance``).
-Every number and rule is the README's rule item 5 and ``image.appearance``'s thresholds; this module only orders
-the checks and keeps their evidence in ``appearance.scores``.
+the other polarity's contest is not taken (``CarmRegLogic._levels_at_clicks``). Neither that contest nor the
+searches for confidence run when no labelling, winning, could make the appearance trusted (``trust_within_reach``).
+The appearance in use (``state.appearance``) always comes with the X-ray's attenuation image converted by it
+(``_use_appearance``). Every number and rule is the README's rule item 5 and ``image.appearance``'s thresholds;
+this module only orders the checks and keeps their evidence in ``appearance.scores``.
 """
 
 from __future__ import annotations
@@ -460,10 +461,10 @@ class AppearanceChecks:
         a.scores.pop("at_clicks_with_winner", None)
         if a.trusted:
             return self._orientation_with_winner(state, winner)
-        judged = cp is not None and _judged(winner, cp.labels)
-        if cp is None or (judged and not (a.orientation_clear and cp.found_better(winner, a.polarity))):
+        if not self._judged_anew(state, a, winner):
             return a.trusted
-        if self.untrusted_for_good(state):
+        judged = _judged(winner, cp.labels)
+        if judged and not cp.found_better(winner, a.polarity):
             return a.trusted
         contexts = self._polarity_contexts(state, cp.dark_storage)
         names = ", ".join(winner.labels)
@@ -516,7 +517,8 @@ class AppearanceChecks:
         return a.decided_by == f"image ({REFINED_AT_CLICKS})" and cp.prefers_other(winner.labels, a.polarity)
 
     def contest_under_other_polarity(self, state: RegistrationState, first: LabellingFit, first_status: str | None,
-                                     contest: Callable[[], LevelIdentification]) -> LevelIdentification | None:
+                                     labellings: list, contest: Callable[[], LevelIdentification]
+                                     ) -> LevelIdentification | None:
         """The levels contest run again (``contest() -> LevelIdentification``) on the X-ray converted as the other
         polarity (``Appearance.other_polarity``, never clear): its answer is returned and its appearance taken only
         when the appearance is then trusted, i.e. its winner, judged at the clicks under both polarities as the
@@ -524,23 +526,27 @@ class AppearanceChecks:
         held. Otherwise None, with the appearance, the polarity evidence and the warnings as they were (also on a
         cancel: ``_all_or_nothing``). No threshold of its own: the same rule that trusts a polarity with the winner
         of the first contest. ``first``: the first contest's winner, or its leader before its searches for
-        confidence (``first_status`` None: the pipeline asks before them). Either way
-        ``scores["contest_under_other_polarity"]`` records both contests."""
+        confidence (``first_status`` None: the pipeline asks before them); ``labellings``: the contest's candidates
+        (``LabellingFit``). Since stop 59 the contest is not run when none of them, winning, could make the other
+        polarity trusted (``trust_within_reach``): it could never be taken. Either way
+        ``scores["contest_under_other_polarity"]`` records both contests (``again`` None: not run)."""
         a, xray = state.appearance, state.xray
         other = _other_appearance(state)
-        self._report("levels", 0.5, f"the best labelling explains the X-ray poorly as {a.polarity}: the contest "
-                                    f"again as {other.polarity}")
-        with _all_or_nothing(state) as kept:
-            state.appearance = other
-            state.xray_line_integral = attenuation(xray.pixels, state.mask, other.bone_dark, other.storage)
-            again = contest()
-            taken = state.appearance.trusted
-            if not taken:
-                _restore(state, kept)
+        again, taken = None, False
+        if self.trust_within_reach(state, labellings, other):
+            self._report("levels", 0.5, f"the best labelling explains the X-ray poorly as {a.polarity}: the contest "
+                                        f"again as {other.polarity}")
+            with _all_or_nothing(state) as kept:
+                state.appearance = other
+                state.xray_line_integral = attenuation(xray.pixels, state.mask, other.bone_dark, other.storage)
+                again = contest()
+                taken = state.appearance.trusted
+                if not taken:
+                    _restore(state, kept)
         state.appearance.scores["contest_under_other_polarity"] = {
             "first": _contest_record(a.polarity, first, first_status),
-            "again": _contest_record(other.polarity, again.winner, again.status), "taken": bool(taken),
-            "before_first_searched": first_status is None}
+            "again": None if again is None else _contest_record(other.polarity, again.winner, again.status),
+            "taken": bool(taken), "before_first_searched": first_status is None}
         if not taken:
             return None
         state.appearance.note += (f"; found after the levels contest as {a.polarity} ended with "
@@ -569,13 +575,36 @@ class AppearanceChecks:
         return a.trusted
 
     @classmethod
-    def untrusted_for_good(cls, state: RegistrationState) -> bool:
-        """Whether the appearance in use stays untrusted whatever the levels contest finds: not trusted, on a display
+    def trust_within_reach(cls, state: RegistrationState, labellings: list, appearance: Appearance | None = None
+                           ) -> bool:
+        """Whether a levels contest over ``labellings`` (its ``LabellingFit`` candidates) may end with the appearance
+        (``appearance``, default the one in use) trusted, so that a verdict other than ambiguous can come out:
+        trusted already, or one of them, as the winner, would be judged anew by ``with_winner``
+        (``_judged_anew``). When not, the contest's searches that serve only a confident verdict are skipped
+        (``levels.finish_contest(confidence_possible=False)``) and the contest under this polarity is not run
+        (``contest_under_other_polarity``): neither could change the status. Seen, stop 59: report case 149's large
+        patient stored bone bright (second CT, L1-S1: all four labellings of three clicks judged at the clicks, the
+        orientation unclear under either polarity), with names one level off: 14 s for a contest under the other
+        polarity that could never be taken and 10 s of searches under the first, 41 s a run, ambiguous either way."""
+        a = appearance if appearance is not None else state.appearance
+        return a is None or a.trusted or any(cls._judged_anew(state, a, f) for f in labellings)
+
+    @classmethod
+    def _judged_anew(cls, state: RegistrationState, a: Appearance, winner: LabellingFit) -> bool:
+        """Whether ``with_winner`` goes on to judge the untrusted appearance ``a`` with the contest's ``winner`` at the
+        clicks: there is a polarity check at the clicks, ``a`` is not untrusted for good
+        (``untrusted_for_good``), and the winner was not judged there or the orientation is clear (a judged winner
+        is judged again only from a better pose, and only with the orientation clear)."""
+        cp = state.click_polarity
+        return (cp is not None and not cls.untrusted_for_good(a)
+                and (a.orientation_clear or not _judged(winner, cp.labels)))
+
+    @classmethod
+    def untrusted_for_good(cls, a: Appearance | None) -> bool:
+        """Whether the appearance ``a`` stays untrusted whatever the levels contest finds: not trusted, on a display
         judged mirrored or turned by a check the contest's winner cannot overrule (any but the orientation check at the
-        clicks on the stored image's leaders alone, ``_refused_at_clicks``). ``with_winner`` then changes nothing and
-        ``worth_other_polarity`` is False, so no level answer can be confident: the levels stage skips the searches
-        that serve only a confident verdict (``levels.identify_levels(confidence_possible=False)``)."""
-        a = state.appearance
+        clicks on the stored image's leaders alone, ``_refused_at_clicks``). ``with_winner`` then changes nothing
+        (``_judged_anew``), so no level answer can be confident (``trust_within_reach``)."""
         return (a is not None and not a.trusted and a.orientation != "as-stored"
                 and not cls._refused_at_clicks(a))
 

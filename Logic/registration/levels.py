@@ -73,11 +73,13 @@ images where L1-L3 led at GC 0.77-0.84 by 0.27-0.56: the lead had passed to it f
 JPEG, named), or between labellings under GC 0.3 before the wider turns found it (intensifier PNG). A challenge or
 the wider turns that change the leading two leave the leader unsettled until such a search (``_search_after``).
 
-When the appearance stays untrusted whatever the contest finds (a display judged mirrored or turned by a check the
-winner cannot overrule: ``AppearanceChecks.untrusted_for_good``), no verdict but ambiguous can come out, and the
+When the appearance stays untrusted whatever the contest finds, no verdict but ambiguous can come out, and the
 searches that serve only a confident verdict (the leaders' searches, the challenge, the wider turns:
-``_search_for_confidence``) are skipped (``identify_levels(confidence_possible=False)``; since stop 49: the fresh
-halves' mirrored displays with clicks, 9.8-23.2 s a run with them, 7.5-13.4 s without, quiet).
+``_search_for_confidence``) are skipped (``identify_levels(confidence_possible=False)``): since stop 49 on a display
+judged mirrored or turned by a check the winner cannot overrule (``AppearanceChecks.untrusted_for_good``; the fresh
+halves' mirrored displays with clicks, 9.8-23.2 s a run with them, 7.5-13.4 s without, quiet), since stop 59
+whenever no labelling of the contest, winning, would be judged anew at the clicks
+(``AppearanceChecks.trust_within_reach``: every one already judged there, the orientation unclear).
 
 Each of these refits is asked for a pose its labelling has not yet found; one whose search has contracted back onto
 the labelling's pose without bettering its score is stopped there (``early_stop.rejoins``, ``stop_rejoined``): the
@@ -642,10 +644,9 @@ def identify_levels(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, param
     image (``open_contest``). ``judge_appearance(winner) -> bool``: called with the contest's winner whenever the
     verdict, were the appearance clear, would not be ambiguous; whether the appearance is trusted once that
     labelling is judged too (the pipeline's, ``AppearanceChecks.with_winner``). ``confidence_possible=False``: the
-    appearance stays untrusted whatever the contest finds (``AppearanceChecks.untrusted_for_good``: a display judged
-    mirrored or turned), so the verdict can only be ambiguous: the labellings are registered and settled as always,
-    but the searches that serve only a confident verdict (``_search_for_confidence``) are skipped
-    (``checks["leaders_searched"]`` False)."""
+    appearance stays untrusted whatever the contest finds (the pipeline's ``AppearanceChecks.trust_within_reach``),
+    so the verdict can only be ambiguous: the labellings are registered and settled as always, but the searches that
+    serve only a confident verdict (``_search_for_confidence``) are skipped (``checks["leaders_searched"]`` False)."""
     return finish_contest(open_contest(ctx, ct, clicks, params, registered), appearance_clear, judge_appearance,
                           confidence_possible)
 

@@ -373,13 +373,13 @@ class CarmRegLogic:
         opened = self._open_contest_at_clicks(state)
         asked_before = self._appearance.worth_other_polarity(state, opened.leader)
         if asked_before:
-            again = self._appearance.contest_under_other_polarity(state, opened.leader, None,
+            again = self._appearance.contest_under_other_polarity(state, opened.leader, None, opened.plan.fits,
                                                                   lambda: self._contest_at_clicks(state))
             if again is not None:
                 return again
         ident = self._finish_contest(state, opened)
         if not asked_before and self._appearance.worth_other_polarity(state, ident.winner):
-            again = self._appearance.contest_under_other_polarity(state, ident.winner, ident.status,
+            again = self._appearance.contest_under_other_polarity(state, ident.winner, ident.status, ident.fits,
                                                                   lambda: self._contest_at_clicks(state))
             return ident if again is None else again
         return ident
@@ -398,14 +398,14 @@ class CarmRegLogic:
     def _finish_contest(self, state: RegistrationState, opened: OpenContest) -> LevelIdentification:
         """The contest decided (``finish_contest``), its winner judged by the appearance checks
         (``AppearanceChecks.with_winner``); without the searches that serve only a confident verdict when the
-        appearance stays untrusted whatever it finds (``AppearanceChecks.untrusted_for_good``)."""
+        appearance stays untrusted whatever labelling wins (``AppearanceChecks.trust_within_reach``)."""
         a = state.appearance
 
         def judge(winner):  # the appearance judged again with the contest's winner (none to judge: no call)
             return self._appearance.with_winner(state, winner)
 
         return finish_contest(opened, a is None or a.trusted, judge_appearance=None if a is None else judge,
-                              confidence_possible=not self._appearance.untrusted_for_good(state))
+                              confidence_possible=self._appearance.trust_within_reach(state, opened.plan.fits))
 
     @staticmethod
     def _image_starts(state: RegistrationState) -> list:

@@ -2,6 +2,7 @@
 image first, then the rule, then a realistic case shown as acquired and shown upside down, a mirrored display
 whose polarity only the mirror tells, and one the wrong polarity takes as stored."""
 
+import copy
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -131,7 +132,7 @@ def test_an_appearance_is_untrusted_for_good_only_where_the_contests_winner_cann
     the stored image's leaders is not (the winner judged too may overrule it, ``with_winner``); nor is a trusted
     display, or one as stored but unclear."""
     def for_good(a) -> bool:
-        return AppearanceChecks.untrusted_for_good(SimpleNamespace(appearance=a))
+        return AppearanceChecks.untrusted_for_good(a)
 
     base = {"as-stored": 0.60, "turned-90": float("nan")}
     fitted = {"as-stored": True, "mirrored-left-right": True, "turned-90": False}
@@ -149,7 +150,40 @@ def test_an_appearance_is_untrusted_for_good_only_where_the_contests_winner_cann
     unclear = _appearance()
     unclear.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.31})
     assert (unclear.orientation, unclear.trusted, for_good(unclear)) == ("as-stored", False, False)
-    assert not AppearanceChecks.untrusted_for_good(SimpleNamespace(appearance=None))
+    assert not AppearanceChecks.untrusted_for_good(None)
+
+
+def test_trust_is_within_reach_only_where_a_winner_would_be_judged_anew():
+    """``AppearanceChecks.trust_within_reach`` (since stop 59: no contest under the other polarity, and no searches
+    for confidence, when it is False): report case 149's large patient, second CT, all four labellings of L1-S1
+    judged at the clicks, the orientation unclear under either polarity. Each part decides once: a trusted
+    appearance, a labelling not judged, a clear orientation (a judged winner found at a better pose is judged
+    again), no polarity check at the clicks, a display refused for good."""
+    judged = [["L1", "L2", "L3"], ["L2", "L3", "L4"], ["L3", "L4", "L5"], ["L4", "L5", "S1"]]
+    fits = [SimpleNamespace(names=lambda lb, mine=mine: list(lb) == mine) for mine in judged]
+    state = SimpleNamespace(click_polarity=SimpleNamespace(labels=judged), appearance=_appearance())
+    unclear = state.appearance
+    unclear.clear = False
+    unclear.set_orientation({"as-stored": 0.087, "mirrored-left-right": 0.086, "turned-180": 0.102})
+    assert not unclear.orientation_clear and not AppearanceChecks.trust_within_reach(state, fits)
+    state.click_polarity.labels = judged[1:]  # L1-L3 never judged: its win would be
+    assert AppearanceChecks.trust_within_reach(state, fits)
+    state.click_polarity.labels = judged
+    clear = copy.deepcopy(unclear)
+    clear.set_orientation({"as-stored": 0.45, "mirrored-left-right": 0.30})
+    assert clear.orientation_clear and not clear.trusted  # the polarity unclear
+    assert AppearanceChecks.trust_within_reach(state, fits, clear)
+    trusted = _appearance()
+    trusted.set_orientation({"as-stored": 0.45, "mirrored-left-right": 0.30})
+    assert trusted.trusted and AppearanceChecks.trust_within_reach(state, [], trusted)
+    undecided = SimpleNamespace(click_polarity=state.click_polarity, appearance=None)
+    assert AppearanceChecks.trust_within_reach(undecided, fits)  # no appearance checks: nothing keeps trust away
+    assert not AppearanceChecks.trust_within_reach(SimpleNamespace(click_polarity=None, appearance=clear), fits)
+    mirrored = copy.deepcopy(clear)
+    mirrored.set_orientation({"as-stored": 0.30, "mirrored-left-right": 0.31 + REFUSE_ORIENTATION_GC})
+    state.click_polarity.labels = []
+    assert AppearanceChecks.untrusted_for_good(mirrored)
+    assert not AppearanceChecks.trust_within_reach(state, fits, mirrored)
 
 
 def _registered(similarity_mpde: dict, fits: dict) -> ClickPolarity:
@@ -243,7 +277,7 @@ def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_fr
         + REFUSE_ORIENTATION_AT_CLICKS_GC
     assert state.xray_line_integral is not None and state.known_gc is not None
     # refused on the mirror, which no winner can overrule: the contest skips its confidence searches, ambiguous
-    assert AppearanceChecks.untrusted_for_good(state)
+    assert AppearanceChecks.untrusted_for_good(state.appearance)
 
 
 @pytest.mark.slow

@@ -118,6 +118,33 @@ def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_not
     assert ident.status == "ambiguous" and state.warnings == [*kept["warnings"], ident.message]
 
 
+@pytest.mark.slow
+@pytest.mark.benchmark_case
+def test_a_contest_no_winner_could_make_trusted_is_not_run_under_the_other_polarity_nor_searched(clicked_case):
+    """Report case 149's large patient stored bone bright (second CT, L1-S1; L4-S1 clicked, named L3-L5, one level
+    off): all four labellings of the three clicks were judged at the clicks, the polarity is unclear and the
+    orientation unclear under either polarity, so no winner is judged anew (``with_winner`` returns at once) and the
+    appearance can never be trusted. Since stop 59 (``AppearanceChecks.trust_within_reach``) the contest under
+    the other polarity is not run (its record's ``again`` null; it took 14 s and was never taken) and the first
+    contest is not searched for confidence (10 s): ambiguous, as before, the given names kept."""
+    logic, state, truth = clicked_case(149, "fp-bright-large-tiff", names=["L3", "L4", "L5"])
+    a = state.appearance
+    assert (a.polarity, a.clear, a.orientation, a.orientation_clear) == ("bone-bright", False, "as-stored", False)
+    assert sorted(map(tuple, state.click_polarity.labels)) == [("L1", "L2", "L3"), ("L2", "L3", "L4"),
+                                                              ("L3", "L4", "L5"), ("L4", "L5", "S1")]
+    logic.run_stage(state, "levels")
+    a, ident = state.appearance, state.identification
+    record = a.scores["contest_under_other_polarity"]
+    assert record["again"] is None and not record["taken"] and record["before_first_searched"]
+    assert ident.status == "ambiguous" and ident.checks["leaders_searched"] is False
+    assert list(ident.chosen.labels) == ["L3", "L4", "L5"] and list(truth["clicked"]) == ["L4", "L5", "S1"]
+    checks = AppearanceChecks(lambda *_: None, lambda: False)
+    kept = _appearance_json(a)
+    for fit in ident.fits:  # the rule's promise: whichever labelling had won, nothing is judged anew
+        assert checks.with_winner(state, fit) is False
+    assert _appearance_json(state.appearance) == kept
+
+
 def _fit(labels, gc, mpde_mm):
     fit = LabellingFit(list(labels), 0, np.zeros((3, 3)), np.zeros((3, 2)))
     fit.refine = RefineResult(np.zeros(6), 0.0, gc, mpde_mm, 1, objective_end=1.0 - gc)
