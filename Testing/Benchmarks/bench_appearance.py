@@ -638,6 +638,10 @@ def main(argv=None) -> int:
     parser.add_argument("--depth-range-mm", type=float, default=SimulationOptions.depth_range_mm,
                         help="draw the source's depth within this of the nominal (the same scenes, nearer or "
                         "farther; the default is the benchmark's)")
+    parser.add_argument("--runs", type=Path,
+                        help="run exactly these, in this order, instead of --first/--cases/--variants/--modes: a "
+                        "JSON list of [case, variant, mode], or a results JSON whose runs are taken (a re-run of "
+                        "recorded runs, or a quiet timing pass in a recorded order)")
     parser.add_argument("--summary-only", action="store_true", help="rewrite the tables from the JSON")
     parser.add_argument("--rescore", action="store_true",
                         help="with --summary-only: score the runs again from the result.json files under --work")
@@ -665,13 +669,13 @@ def main(argv=None) -> int:
         return 0
     done = {(r["case"], r["variant"], r["mode"]) for r in rows}
     maker = CaseMaker(depth_range_mm=args.depth_range_mm)
+    batches = (listed_jobs(maker, _listed(args.runs), done, args) if args.runs is not None else
+               (jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion,
+                              args.turn_mirrored) for case in range(args.first, args.first + args.cases)
+                if (args.half == "all" or half(case) == args.half)
+                and (args.ct == "any" or maker.ct_name(case) == args.ct)))
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for case in range(args.first, args.first + args.cases):
-            if (args.half != "all" and half(case) != args.half) or (
-                    args.ct != "any" and maker.ct_name(case) != args.ct):
-                continue
-            jobs = jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion,
-                                 args.turn_mirrored)
+        for jobs in batches:
             for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
                 rows.append(row)
                 print(f"case {row['case']:3d} {row['ct'][:5]} {row['variant']:<27} {row['mode']:<7} "
@@ -680,6 +684,26 @@ def main(argv=None) -> int:
                 write_results(args.out, rows, meta)
     print(summarize(rows, "report"))
     return 0
+
+
+def _listed(path: Path) -> list[tuple]:
+    """``--runs``: (case, variant, mode) in order, from a JSON list of them or a results JSON's runs."""
+    doc = json.loads(path.read_text())
+    runs = doc["runs"] if isinstance(doc, dict) else doc
+    return [(r["case"], r["variant"], r["mode"]) if isinstance(r, dict) else tuple(r) for r in runs]
+
+
+def listed_jobs(maker: CaseMaker, keys: list[tuple], done: set, args) -> list[list[dict]]:
+    """The runs ``keys`` (``_listed``) not yet ``done``, each as a batch of one, in the listed order (each case's
+    files written once)."""
+    jobs = {}
+    for case in dict.fromkeys(k[0] for k in keys):
+        mine = [k for k in keys if k[0] == case]
+        for j in jobs_for_case(maker, case, list(dict.fromkeys(k[1] for k in mine)),
+                               list(dict.fromkeys(k[2] for k in mine)), done, args.work, args.calibrated_distortion,
+                               args.turn_mirrored):
+            jobs[(j["case"], j["variant"], j["mode"])] = j
+    return [[jobs[k]] for k in keys if k in jobs]
 
 
 def _description() -> str:
