@@ -2,7 +2,8 @@
 the polarity stayed unclear at the clicks and the contest's winner, not among the labellings it was judged on,
 explains the image poorly, on a case of the appearance benchmark whose polarity had been judged on wrong labellings
 only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing), and on
-one where it must change nothing but its record (report case 201's mirrored display). A winner the polarity was
+one where it must change nothing but its record (report case 201's mirrored display), and one where it could never
+be taken and is not run (report case 149's large patient, stop 59). A winner the polarity was
 judged on gets no second contest (``test_polarity_at_clicks_without_shading``, case 92), unless the polarity taken
 there fitted it worse than the other (stop 46, case 271's numbers)."""
 
