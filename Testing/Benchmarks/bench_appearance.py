@@ -669,11 +669,8 @@ def main(argv=None) -> int:
         return 0
     done = {(r["case"], r["variant"], r["mode"]) for r in rows}
     maker = CaseMaker(depth_range_mm=args.depth_range_mm)
-    batches = (listed_jobs(maker, _listed(args.runs), done, args) if args.runs is not None else
-               (jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion,
-                              args.turn_mirrored) for case in range(args.first, args.first + args.cases)
-                if (args.half == "all" or half(case) == args.half)
-                and (args.ct == "any" or maker.ct_name(case) == args.ct)))
+    batches = (listed_jobs(maker, _listed(args.runs), done, args) if args.runs is not None
+               else case_jobs(maker, variants, modes, done, args))
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for jobs in batches:
             for row in pool.map(lambda j: run_one(j, args.cache_dir, args.timeout_s), jobs):
@@ -684,6 +681,15 @@ def main(argv=None) -> int:
                 write_results(args.out, rows, meta)
     print(summarize(rows, "report"))
     return 0
+
+
+def case_jobs(maker: CaseMaker, variants: list[str], modes: list[str], done: set, args):
+    """The runs of ``--first``/``--cases`` (those of ``--half`` and ``--ct``) not yet ``done``, one batch per case
+    (``jobs_for_case``), made as they are asked for."""
+    for case in range(args.first, args.first + args.cases):
+        if (args.half == "all" or half(case) == args.half) and (args.ct == "any" or maker.ct_name(case) == args.ct):
+            yield jobs_for_case(maker, case, variants, modes, done, args.work, args.calibrated_distortion,
+                                args.turn_mirrored)
 
 
 def _listed(path: Path) -> list[tuple]:
