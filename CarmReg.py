@@ -240,7 +240,7 @@ class CarmRegWidget(ScriptedLoadableModuleWidget):
         ui.xray = self._node_selector(form, "Xray", "X-ray:")
         ui.xrayPoints = self._node_selector(form, "XrayPoints", "X-ray clicks (optional):")
         ui.orientation = qt.QComboBox()
-        for name in slicer_nodes().ORIENTATION_CHOICES:
+        for name in slicer_nodes().ORIENTATIONS:
             ui.orientation.addItem(f"shown {name.replace('-', ' ')}", name)
         ui.orientation.toolTip = ("How the X-ray volume is turned before registering (its clicks with it; the "
                                   "outputs come back onto the volume as stored). Leave it as stored unless CarmReg "

@@ -38,10 +38,6 @@ with no DistortionMm given gets its pincushion estimated from the image (``regis
 auto (found from the image against the CT), bone-dark or bone-bright; Storage (a bone-dark X-ray's): auto (as its
 DICOM states, else found from the image), linear-intensity or log-display; Field: auto (the exposed field found from
 the image) or whole; XrayOrientation: ``image.turn.ORIENTATIONS`` (module docstring)."""
-POLARITY_CHOICES = POLARITY_SETTINGS
-STORAGE_CHOICES = STORAGE_SETTINGS
-FIELD_CHOICES = FIELDS
-ORIENTATION_CHOICES = tuple(ORIENTATIONS)
 
 
 def matrix_to_numpy(vtk_matrix):
@@ -253,11 +249,12 @@ def parameters_from_node(parameter_node):
 
 
 def display_from_node(parameter_node):
-    """(polarity, storage, field, orientation) of a parameter node's X-ray: ``POLARITY_CHOICES``, ``STORAGE_CHOICES``,
-    ``FIELD_CHOICES``, ``ORIENTATION_CHOICES``."""
-    return tuple(_choice(parameter_node, name, choices) for name, choices in (
-        ("Polarity", POLARITY_CHOICES), ("Storage", STORAGE_CHOICES), ("Field", FIELD_CHOICES),
-        ("XrayOrientation", ORIENTATION_CHOICES)))
+    """(polarity, storage, field, orientation) of a parameter node's X-ray, each one of its settings, the first the
+    default: ``POLARITY_SETTINGS``, ``STORAGE_SETTINGS``, ``FIELDS``, ``ORIENTATIONS`` (the words the module shows
+    them in: ``xray_settings``)."""
+    return tuple(_choice(parameter_node, name, tuple(choices)) for name, choices in (
+        ("Polarity", POLARITY_SETTINGS), ("Storage", STORAGE_SETTINGS), ("Field", FIELDS),
+        ("XrayOrientation", ORIENTATIONS)))
 
 
 def _choice(parameter_node, name: str, choices: tuple) -> str:

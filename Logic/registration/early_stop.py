@@ -47,6 +47,7 @@ among those that forfeit at most 0.003 of a score; wider ones forfeit up to 0.00
 from __future__ import annotations
 
 import bisect
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -65,12 +66,21 @@ def allowance(evaluations: int) -> float:
     return float("inf") if k < 0 else SAFETY * STILL_TO_COME[_COUNTS[k]] + SLACK
 
 
-def give_up_above(bar: float):
+@dataclass(frozen=True)
+class GiveUpAbove:
     """``give_up(evaluations, best_objective) -> bool`` for ``image_refine.intensity_refine``: True once the
-    refinement cannot come within its allowance of ``bar`` (inf: never)."""
-    def give_up(evaluations: int, best: float) -> bool:
-        return best - allowance(evaluations) > bar
-    return give_up
+    refinement cannot come within its allowance of ``bar`` (inf: never). A value (hashable, equal when ``bar`` is):
+    a refinement's stopping rule is part of what it is (``refinement_memo``)."""
+
+    bar: float
+
+    def __call__(self, evaluations: int, best: float) -> bool:
+        return best - allowance(evaluations) > self.bar
+
+
+def give_up_above(bar: float) -> GiveUpAbove:
+    """The ``GiveUpAbove`` of ``bar``."""
+    return GiveUpAbove(float(bar))
 
 
 def lower_bound(score: float, stopped_at: int | None) -> float:
@@ -88,8 +98,26 @@ REJOIN_GAIN = 0.01
 """... without having bettered the labelling's score by more than this."""
 
 
+@dataclass(frozen=True)
+class Rejoins:
+    """``rejoined(best_objective, mean_pose, stds) -> bool`` for ``image_refine.intensity_refine`` (``rejoins``); a
+    value, as ``GiveUpAbove`` is. ``pose`` and ``steps`` as tuples of floats (pose order)."""
+
+    pose: tuple
+    score: float
+    steps: tuple
+    spread: float
+    distance: float
+    gain: float
+
+    def __call__(self, best: float, mean: np.ndarray, stds: np.ndarray) -> bool:
+        steps = np.asarray(self.steps, float)
+        return bool(best >= self.score - self.gain and np.all(np.asarray(stds) <= self.spread * steps)
+                    and np.all(np.abs(np.asarray(mean) - np.asarray(self.pose, float)) <= self.distance * steps))
+
+
 def rejoins(pose, score: float, first_steps, spread: float = REJOIN_SPREAD, distance: float = REJOIN_DISTANCE,
-            gain: float = REJOIN_GAIN):
+            gain: float = REJOIN_GAIN) -> Rejoins:
     """``rejoined(best_objective, mean_pose, stds) -> bool`` for ``image_refine.intensity_refine``: True once a refit
     of a labelling registered at ``pose`` with ``score`` (another start: ``labelling_fit.refit_from``) has
     settled back in that registration's basin, where the rest of its search could only polish that pose::
@@ -100,9 +128,5 @@ def rejoins(pose, score: float, first_steps, spread: float = REJOIN_SPREAD, dist
     ``gain`` the product's ``REJOIN_*`` unless a benchmark tries others (``rejoin_traces.py``). A refit is asked for
     the pose it might find elsewhere (a tilt, a rival's pose, a fresh search); one that has contracted onto the pose
     the labelling already has ends there (module docstring, stop 41's figures)."""
-    pose, steps = np.asarray(pose, float), np.asarray(first_steps, float)
-
-    def settled(best: float, mean: np.ndarray, stds: np.ndarray) -> bool:
-        return bool(best >= score - gain and np.all(np.asarray(stds) <= spread * steps)
-                    and np.all(np.abs(np.asarray(mean) - pose) <= distance * steps))
-    return settled
+    return Rejoins(tuple(float(x) for x in np.ravel(pose)), float(score),
+                   tuple(float(x) for x in np.ravel(first_steps)), float(spread), float(distance), float(gain))

@@ -29,6 +29,7 @@ from carmreg.logic.registration.depth import DepthResult, depth_search, recenter
 from carmreg.logic.registration.early_stop import rejoins
 from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
+from carmreg.logic.registration.refinement_memo import RefinementMemo
 
 
 def coarse_refine_parameters() -> RefineParameters:
@@ -56,6 +57,7 @@ class FitContext:
     should_stop: object = None
     on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
     xray_equalised: np.ndarray | None = None  # (rows, cols) the X-ray's rank image (``agreement``; None: not used)
+    refinements: RefinementMemo | None = None  # the registration's refinements run so far (None: none recalled)
 
 
 @dataclass
@@ -225,7 +227,7 @@ def state_context(state, line_integral: np.ndarray, ty_mm: float, tz_mm: float, 
     p = state.parameters
     return FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, line_integral,
                       state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
-                      p.depth_far_mm, p.depth_step_mm, should_stop, on_labelling)
+                      p.depth_far_mm, p.depth_step_mm, should_stop, on_labelling, refinements=state.refinements)
 
 
 def unshaded_context(ctx: FitContext, without_shading_mm: float) -> FitContext:
@@ -241,8 +243,18 @@ def unlabelled_fit(ctx: FitContext, start_pose: np.ndarray, shift: int = 0) -> L
 
 def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, give_up=None, rejoined=None
                  ) -> LabellingFit:
-    r = intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm,
-                         fit.uv_px, ctx.refine, should_stop=ctx.should_stop, give_up=give_up, rejoined=rejoined)
+    """One image refinement of ``fit`` from ``start_pose`` (recalled from ``ctx.refinements`` when the same one ran
+    before: ``refinement_memo``), recorded as a start and kept when it betters the labelling's."""
+    inputs = (ctx.mu, ctx.geometry, ctx.xray_line_integral, ctx.mask, ctx.refine, fit.points_lps_mm, fit.uv_px,
+              start_pose)
+
+    def run() -> RefineResult:
+        return intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask,
+                                fit.points_lps_mm, fit.uv_px, ctx.refine, should_stop=ctx.should_stop,
+                                give_up=give_up, rejoined=rejoined)
+
+    memo = ctx.refinements
+    r = run() if memo is None else memo.result(memo.key(*inputs, give_up, rejoined), run)
     fit.starts += 1
     if r.rejoined_at is not None:
         fit.rejoined.append(r.rejoined_at)

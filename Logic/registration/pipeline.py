@@ -346,7 +346,8 @@ class CarmRegLogic:
         if ident.status == "ambiguous":
             state.warnings.append(ident.message)
         # the answer itself is the result's level_check (result.json "level_check"), not repeated here
-        return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits)}
+        return {"enabled": True, "status": ident.status, "labellings_registered": sum(f.refined for f in ident.fits),
+                "refinements": state.refinements.as_dict()}
 
     def _levels_context(self, state: RegistrationState) -> FitContext:
         """Where the levels stage registers: the X-ray's attenuation image as converted by the appearance in use, its

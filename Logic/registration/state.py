@@ -32,6 +32,7 @@ from carmreg.logic.registration.levels import (
     LevelIdentification,
 )
 from carmreg.logic.registration.pincushion import UNCORRECTED_INTENSIFIER
+from carmreg.logic.registration.refinement_memo import RefinementMemo
 from carmreg.logic.registration.spatial import SpatialResult
 
 STAGES = ("database", "spatial", "levels", "depth", "fine", "refine", "final_drr")
@@ -108,6 +109,7 @@ class RegistrationState:
     click_polarity: ClickPolarity | None = None  # the polarity check's registrations at the clicks (spatial stage)
     image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
     turned_fits: dict = field(default_factory=dict)  # the orientation check's registrations, per (polarity, storage)
+    refinements: RefinementMemo = field(default_factory=RefinementMemo)  # labellings' refinements run so far
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     round_field: bool = False               # the exposed field is a disc (an image intensifier's: ``field``)
     pinhole: tuple | None = None            # (geometry, pairs, the estimate's note) before the refine stage's

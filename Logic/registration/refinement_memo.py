@@ -1,0 +1,103 @@
+"""Image refinements already run in one registration, by everything they depend on.
+
+A labelling's image refinement (``image_refine.intensity_refine`` from ``labelling_fit``) is a seeded search: the
+same inputs give the same result, bit for bit. One registration asks for some of them twice - the check on the
+mirrored image (spatial stage) and the orientation judged again with the levels' winner register the same
+labellings on the same mirrored image; a second search round of the leading two refits them from the same tilted
+poses and restarts them from the same poses when the first round left them where they were. ``RefinementMemo``
+answers such a repeat with the result it had instead of running it again.
+
+What a refinement depends on, its key:
+
+- the mu level (the object, held by the memo so that no other object can take its ``id``), the geometry and the
+  refinement's parameters (values);
+- the X-ray image it compares with and its exposed field (their contents: a 16-byte BLAKE2b digest of the bytes,
+  with shape and dtype, computed once per array object; the mirrored image is made anew each time it is asked for);
+- the labelling's CT points and clicks, and the start pose (their float64 bytes);
+- its stopping rules: ``early_stop.GiveUpAbove`` and ``early_stop.Rejoins`` are values (the bar; the
+  labelling's pose and score the refit may rejoin). A refinement with any other stopping rule is not remembered.
+
+Nothing else enters ``intensity_refine`` but its cancel check, which only raises. Each answer is a copy of the
+result as it was first returned (``RefineResult`` is later annotated in place: ``agreement`` sets
+``equalised_similarity``), so a remembered result is what a fresh run would have returned; a cancelled refinement
+returns nothing and is not remembered.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import weakref
+from collections.abc import Callable
+
+import numpy as np
+
+from carmreg.logic.registration.early_stop import GiveUpAbove, Rejoins
+from carmreg.logic.registration.image_refine import RefineResult
+
+_STOPPING_RULES = (GiveUpAbove, Rejoins)
+
+
+def _copy(result: RefineResult) -> RefineResult:
+    """``result`` with its own pose and convergence record."""
+    return dataclasses.replace(result, pose=np.array(result.pose, float), convergence=list(result.convergence))
+
+
+def _values(x) -> tuple:
+    """A float64 array's shape and bytes: equal exactly when the numbers are."""
+    a = np.ascontiguousarray(x, dtype=np.float64)
+    return a.shape, a.tobytes()
+
+
+class RefinementMemo:
+    """The refinements one registration has run (module docstring); ``result`` runs or recalls one."""
+
+    def __init__(self):
+        self.run = 0                                      # refinements run through it
+        self.recalled = 0                                 # ... and answered from memory
+        self._results: dict[tuple, RefineResult] = {}
+        self._levels: dict[int, object] = {}              # id -> the mu level, held: its id names it alone
+        self._digests: dict[int, tuple[weakref.ref, tuple]] = {}  # id(array) -> (the array, weakly; its digest)
+
+    def _level_key(self, mu) -> int:
+        """The mu level's ``id``, the level held for as long as the memo lives."""
+        self._levels.setdefault(id(mu), mu)
+        return id(mu)
+
+    def _digest(self, image: np.ndarray) -> tuple:
+        """(shape, dtype, 16-byte BLAKE2b of the bytes) of ``image``, computed once per live array object."""
+        hit = self._digests.get(id(image))
+        if hit is not None and hit[0]() is image:
+            return hit[1]
+        a = np.ascontiguousarray(image)
+        digest = a.shape, str(a.dtype), hashlib.blake2b(a.view(np.uint8).ravel(), digest_size=16).digest()
+        self._digests[id(image)] = (weakref.ref(image), digest)
+        return digest
+
+    def key(self, mu, geometry, image: np.ndarray, mask: np.ndarray, params, points_lps_mm: np.ndarray,
+            uv_px: np.ndarray, start_pose: np.ndarray, give_up=None, rejoined=None) -> tuple | None:
+        """What a refinement with these inputs depends on (module docstring); None when a stopping rule is not a
+        value (it is then not remembered)."""
+        if any(rule is not None and not isinstance(rule, _STOPPING_RULES) for rule in (give_up, rejoined)):
+            return None
+        return (self._level_key(mu), geometry, self._digest(image), self._digest(mask),
+                dataclasses.astuple(params), _values(points_lps_mm),
+                _values(uv_px), _values(start_pose), give_up, rejoined)
+
+    def result(self, key: tuple | None, run: Callable[[], RefineResult]) -> RefineResult:
+        """The refinement of ``key``: recalled when it ran before, else ``run()`` (remembered unless ``key`` is
+        None). Always a result of its own (``_copy``)."""
+        known = self._results.get(key) if key is not None else None
+        if known is not None:
+            self.recalled += 1
+            return _copy(known)
+        result = run()
+        self.run += 1
+        if key is not None:
+            self._results[key] = _copy(result)
+        return _copy(result)
+
+    def as_dict(self) -> dict:
+        """result.json ``stages[levels].refinements``: the labellings' image refinements of the registration so far,
+        run and recalled."""
+        return {"run": self.run, "recalled": self.recalled}
