@@ -9,10 +9,10 @@ answers such a repeat with the result it had instead of running it again.
 
 What a refinement depends on, its key:
 
-- the mu level (the object, held by the memo so that no other object can take its ``id``), the geometry and the
-  refinement's parameters (values);
-- the X-ray image it compares with and its exposed field (their contents: a 16-byte BLAKE2b digest of the bytes,
-  with shape and dtype, computed once per array object; the mirrored image is made anew each time it is asked for);
+- the mu level's volume, the X-ray image it compares with and its exposed field: their contents, a 16-byte BLAKE2b
+  digest of the bytes with shape and dtype, computed once per array object (the mirrored image is made anew each
+  time it is asked for; arrays are never changed in place here, as ``drr.cpu``'s layout cache assumes too);
+- the level's affine, the geometry and the refinement's parameters (values);
 - the labelling's CT points and clicks, and the start pose (their float64 bytes);
 - its stopping rules: ``early_stop.GiveUpAbove`` and ``early_stop.Rejoins`` are values (the bar; the
   labelling's pose and score the refit may rejoin). A refinement with any other stopping rule is not remembered.
@@ -56,13 +56,7 @@ class RefinementMemo:
         self.run = 0                                      # refinements run through it
         self.recalled = 0                                 # ... and answered from memory
         self._results: dict[tuple, RefineResult] = {}
-        self._levels: dict[int, object] = {}              # id -> the mu level, held: its id names it alone
         self._digests: dict[int, tuple[weakref.ref, tuple]] = {}  # id(array) -> (the array, weakly; its digest)
-
-    def _level_key(self, mu) -> int:
-        """The mu level's ``id``, the level held for as long as the memo lives."""
-        self._levels.setdefault(id(mu), mu)
-        return id(mu)
 
     def _digest(self, image: np.ndarray) -> tuple:
         """(shape, dtype, 16-byte BLAKE2b of the bytes) of ``image``, computed once per live array object."""
@@ -80,9 +74,9 @@ class RefinementMemo:
         value (it is then not remembered)."""
         if any(rule is not None and not isinstance(rule, _STOPPING_RULES) for rule in (give_up, rejoined)):
             return None
-        return (self._level_key(mu), geometry, self._digest(image), self._digest(mask),
-                dataclasses.astuple(params), _values(points_lps_mm),
-                _values(uv_px), _values(start_pose), give_up, rejoined)
+        return (self._digest(mu.mu_per_mm), _values(mu.ijk_to_lps), geometry, self._digest(image), self._digest(mask),
+                dataclasses.astuple(params), _values(points_lps_mm), _values(uv_px), _values(start_pose), give_up,
+                rejoined)
 
     def result(self, key: tuple | None, run: Callable[[], RefineResult]) -> RefineResult:
         """The refinement of ``key``: recalled when it ran before, else ``run()`` (remembered unless ``key`` is

@@ -68,7 +68,7 @@ def test_the_same_refinement_asked_again_is_recalled_and_is_what_a_fresh_run_giv
     assert np.isnan(refit_from(ctx, _fit(), START).refine.equalised_similarity)
 
 
-def test_an_image_of_the_same_content_is_the_same_input_another_image_is_not(tiny_db_inputs, counted):
+def test_an_image_or_mu_level_of_the_same_content_is_the_same_input_another_is_not(tiny_db_inputs, counted):
     memo = RefinementMemo()
     ctx = _context(tiny_db_inputs, memo)
     refit_from(ctx, _fit(), START)
@@ -76,6 +76,10 @@ def test_an_image_of_the_same_content_is_the_same_input_another_image_is_not(tin
     for image in (mirrored.copy(), mirrored.copy()):   # made anew, as the mirrored image is each time it is asked
         refit_from(dataclasses.replace(ctx, xray_line_integral=image), _fit(), START)
     assert counted[0] == 2 and memo.recalled == 1
+    level = ctx.mu
+    for mu in (level.mu_per_mm.copy(), level.mu_per_mm * np.float32(1.01)):  # a copy (a copied state's), another CT
+        refit_from(dataclasses.replace(ctx, mu=dataclasses.replace(level, mu_per_mm=mu)), _fit(), START)
+    assert counted[0] == 3 and memo.recalled == 2
 
 
 def test_another_start_seed_or_stopping_rule_runs_afresh(tiny_db_inputs, counted):
