@@ -245,16 +245,15 @@ def _refine_from(ctx: FitContext, fit: LabellingFit, start_pose: np.ndarray, giv
                  ) -> LabellingFit:
     """One image refinement of ``fit`` from ``start_pose`` (recalled from ``ctx.refinements`` when the same one ran
     before: ``refinement_memo``), recorded as a start and kept when it betters the labelling's."""
-    inputs = (ctx.mu, ctx.geometry, ctx.xray_line_integral, ctx.mask, ctx.refine, fit.points_lps_mm, fit.uv_px,
-              start_pose)
+    inputs = (ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask, fit.points_lps_mm, fit.uv_px,
+              ctx.refine)
+    stops = {"give_up": give_up, "rejoined": rejoined}
 
     def run() -> RefineResult:
-        return intensity_refine(ctx.mu, ctx.geometry, start_pose, ctx.xray_line_integral, ctx.mask,
-                                fit.points_lps_mm, fit.uv_px, ctx.refine, should_stop=ctx.should_stop,
-                                give_up=give_up, rejoined=rejoined)
+        return intensity_refine(*inputs, should_stop=ctx.should_stop, **stops)
 
     memo = ctx.refinements
-    r = run() if memo is None else memo.result(memo.key(*inputs, give_up, rejoined), run)
+    r = run() if memo is None else memo.result(memo.key(*inputs, **stops), run)
     fit.starts += 1
     if r.rejoined_at is not None:
         fit.rejoined.append(r.rejoined_at)

@@ -68,10 +68,10 @@ class RefinementMemo:
         self._digests[id(image)] = (weakref.ref(image), digest)
         return digest
 
-    def key(self, mu, geometry, image: np.ndarray, mask: np.ndarray, params, points_lps_mm: np.ndarray,
-            uv_px: np.ndarray, start_pose: np.ndarray, give_up=None, rejoined=None) -> tuple | None:
-        """What a refinement with these inputs depends on (module docstring); None when a stopping rule is not a
-        value (it is then not remembered)."""
+    def key(self, mu, geometry, start_pose: np.ndarray, image: np.ndarray, mask: np.ndarray,
+            points_lps_mm: np.ndarray, uv_px: np.ndarray, params, give_up=None, rejoined=None) -> tuple | None:
+        """What a refinement with these inputs depends on (module docstring), given as to
+        ``image_refine.intensity_refine``; None when a stopping rule is not a value (it is then not remembered)."""
         if any(rule is not None and not isinstance(rule, _STOPPING_RULES) for rule in (give_up, rejoined)):
             return None
         return (self._digest(mu.mu_per_mm), _values(mu.ijk_to_lps), geometry, self._digest(image), self._digest(mask),
@@ -79,8 +79,8 @@ class RefinementMemo:
                 rejoined)
 
     def result(self, key: tuple | None, run: Callable[[], RefineResult]) -> RefineResult:
-        """The refinement of ``key``: recalled when it ran before, else ``run()`` (remembered unless ``key`` is
-        None). Always a result of its own (``_copy``)."""
+        """The refinement of ``key``: recalled when it ran before (a copy of the one kept), else ``run()``'s result,
+        a copy of it kept unless ``key`` is None; the caller's result is always its own."""
         known = self._results.get(key) if key is not None else None
         if known is not None:
             self.recalled += 1
@@ -89,7 +89,7 @@ class RefinementMemo:
         self.run += 1
         if key is not None:
             self._results[key] = _copy(result)
-        return _copy(result)
+        return result
 
     def as_dict(self) -> dict:
         """result.json ``stages[levels].refinements``: the labellings' image refinements of the registration so far,
