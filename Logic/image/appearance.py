@@ -398,10 +398,11 @@ class Appearance:
         self.orientation_clear = bool(lead >= clear_gc and not database_refused)
 
     def set_orientation_without_clicks(self, orientation: str, scores: dict) -> None:
-        """Without clicks: the display taken as ``orientation`` (mirrored left-right, flipped up-down or turned 180
-        degrees) from the refined image-alone registrations (``scores``: {"as-stored": GC, orientation: GC}, each the
-        best under the polarity used), which ``appearance_checks._orientation_without_clicks`` does only when it
-        leads by ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
+        """Without clicks: the display taken as ``orientation`` (mirrored left-right, flipped up-down, turned 180
+        degrees, or on a square detector turned a quarter and perhaps mirrored) from the refined image-alone
+        registrations (``scores``: {"as-stored": GC, orientation: GC}, each the best under the polarity used), which
+        ``appearance_checks._orientation_without_clicks`` does only when it leads by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC``: the image is refused (module docstring)."""
         self.orientation_without_clicks = {k: float(v) for k, v in scores.items()}
         self.orientation, self.orientation_clear = orientation, False
         self.orientation_decided_by = f"image ({refined_on_without_clicks(orientation)})"
