@@ -1,6 +1,8 @@
 """The display's orientation judged where the clicks put the CT (``click_orientation``): the geometry of a turned
 image first, then the rule, then a realistic case shown as acquired and shown upside down, a mirrored display
-whose polarity only the mirror tells, and one the wrong polarity takes as stored."""
+whose polarity only the mirror tells, and one the wrong polarity takes as stored; without clicks, the displays judged
+on the image alone (a quarter turn, a half turn the polarity in use rules out, a mirror judged after the second
+opinion)."""
 
 import copy
 import sys
@@ -232,13 +234,12 @@ def mirrored_display(tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's tune case 0 (chest CT, its independent simulator), an intensifier image shown
     mirrored left-right, bone dark, 16-bit PNG: (CT, its centroids, X-ray, the three clicks' (u, v) px, parameters
     with the session's DRR cache)."""
-    ct, centroids, xray, truth = _mirrored_chest_scene(0, tmp_path_factory.mktemp("mirrored-case"))
+    ct, centroids, xray, truth = _benchmark_scene(0, tmp_path_factory.mktemp("mirrored-case"))
     params = RegistrationParameters(cache_dir=drr_cache_dir)
     return ct, centroids, xray, np.asarray(truth["clicks_uv_px"], float), params
 
 
-def _mirrored_chest_scene(case: int, folder: Path, variant_name: str = "ii-dark-mirrored-png",
-                          second_ct: bool = False):
+def _benchmark_scene(case: int, folder: Path, variant_name: str = "ii-dark-mirrored-png", second_ct: bool = False):
     """(CT, its centroids, X-ray, truth): the appearance benchmark's scene ``case`` drawn on the chest CT (no
     ../shared needed; ``second_ct``: on the CT the benchmark draws it on, the test skipped when that is the second
     CT and ../shared is absent) as ``variant_name`` (by default the intensifier image shown mirrored left-right, bone
@@ -256,6 +257,17 @@ def _mirrored_chest_scene(case: int, folder: Path, variant_name: str = "ii-dark-
     xray = load_xray(record["xray"], sdd_mm=detector.sdd_mm, pixel_spacing_mm=detector.pixel_mm)
     (ct, _, centroids), _, _ = maker.cts[maker.ct_name(case)]
     return ct, centroids, xray, record["truth"]
+
+
+def _spatial_without_clicks(case: int, folder: Path, variant_name: str, drr_cache_dir: str, second_ct: bool = False):
+    """(state after the spatial stage, truth): the benchmark's scene ``case`` as ``variant_name``
+    (``_benchmark_scene``) registered without clicks up to where the appearance is decided."""
+    ct, centroids, xray, truth = _benchmark_scene(case, folder, variant_name, second_ct)
+    logic = CarmRegLogic()
+    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))),
+                          RegistrationParameters(cache_dir=drr_cache_dir))
+    logic.run_through(state, "spatial")
+    return state, truth
 
 
 def _appearance_found(mirrored_display, clicks: Landmarks2D):
@@ -329,13 +341,9 @@ def test_without_clicks_a_quarter_turned_display_is_found_with_its_polarity_and_
     bone bright taken, unclear, the display left as stored). Refined on the quarter turns too, the image turned
     back (turned-270) agrees far more, bone dark clearly: the polarity is taken from it, and the display refused
     with the turn that undoes it."""
-    ct, centroids, xray, truth = _mirrored_chest_scene(504, tmp_path_factory.mktemp("turned-case"),
-                                                       "fp-dark-turned90-jpeg")
+    state, truth = _spatial_without_clicks(504, tmp_path_factory.mktemp("turned-case"), "fp-dark-turned90-jpeg",
+                                           drr_cache_dir)
     assert truth["display_turn"] == "turned-90" and not truth["bone_bright_displayed"]
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))),
-                          RegistrationParameters(cache_dir=drr_cache_dir))
-    logic.run_through(state, "spatial")
     a = state.appearance
     stored, turned = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_turned-270"]["scores"]
     assert abs(stored["bone-dark"] - stored["bone-bright"]) < CLEAR_REFINED_GC  # the stored image alone: unclear
@@ -354,13 +362,9 @@ def test_without_clicks_a_display_the_database_rules_out_only_under_the_polarity
     degrees, no clicks. Refined as stored, bone bright leads, unclear, and under bone bright the database rules the
     half turn out (stop 56: the display left as stored, bone bright). Under bone dark the database's half turn
     leads: judged there too, the half turn agrees far more, bone dark clearly, and the display is refused."""
-    ct, centroids, xray, truth = _mirrored_chest_scene(502, tmp_path_factory.mktemp("half-turned-case"),
-                                                       "ii-dark-turned180-png")
+    state, truth = _spatial_without_clicks(502, tmp_path_factory.mktemp("half-turned-case"), "ii-dark-turned180-png",
+                                           drr_cache_dir)
     assert truth["display_turn"] == "turned-180" and not truth["bone_bright_displayed"]
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))),
-                          RegistrationParameters(cache_dir=drr_cache_dir))
-    logic.run_through(state, "spatial")
     a = state.appearance
     stored, turned = a.scores["without_clicks"]["scores"], a.scores["without_clicks_on_turned-180"]["scores"]
     assert stored["bone-bright"] > stored["bone-dark"] > stored["bone-bright"] - CLEAR_REFINED_GC
@@ -375,17 +379,12 @@ def test_without_clicks_a_display_the_database_rules_out_only_under_the_polarity
 def test_without_clicks_the_displays_are_judged_after_a_second_opinion_that_leaves_the_verdict_unclear(
         sample_case_dir, tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's tune case 296 (the second CT: skipped without ../shared): its intensifier PNG,
-    bone dark, shown mirrored, no clicks. Refined as stored, bone bright leads
-    clearly, so no display is judged then; the second opinion without the shading does not confirm it (stop 61,
-    the benchmark's run: 0.222 over the 0.22, then 0.026). Judged after it, the mirror agrees far more, bone dark:
-    the display is refused."""
-    ct, centroids, xray, truth = _mirrored_chest_scene(296, tmp_path_factory.mktemp("unconfirmed-case"),
-                                                       second_ct=True)
+    bone dark, shown mirrored, no clicks. Refined as stored, bone bright leads clearly, so no display is judged
+    then; the second opinion without the shading does not confirm it (stop 61, the benchmark's run: 0.222 over the
+    0.22, then 0.026). Judged after it, the mirror agrees far more, bone dark: the display is refused."""
+    state, truth = _spatial_without_clicks(296, tmp_path_factory.mktemp("unconfirmed-case"), "ii-dark-mirrored-png",
+                                           drr_cache_dir, second_ct=True)
     assert truth["mirrored"] and not truth["bone_bright_displayed"]
-    logic = CarmRegLogic()
-    state = logic.prepare(ct, centroids, xray, Landmarks2D([], np.zeros((0, 2))),
-                          RegistrationParameters(cache_dir=drr_cache_dir))
-    logic.run_through(state, "spatial")
     a = state.appearance
     keys = list(a.scores)
     assert keys.index("without_clicks_without_shading") < keys.index("without_clicks_on_mirror")  # judged after it
@@ -557,7 +556,7 @@ def mirrored_names_one_level_off(tmp_path_factory, drr_cache_dir):
     shown mirrored left-right, bone dark, 16-bit PNG, T9-T11 clicked and named one level off (T8-T10). As stored, bone
     bright leads at the clicks by 0.115 (clear) and finds the display as stored clearly; as bone dark the mirror
     reaches GC 0.86 with the clicks fitted."""
-    ct, centroids, xray, truth = _mirrored_chest_scene(353, tmp_path_factory.mktemp("mirrored-353"))
+    ct, centroids, xray, truth = _benchmark_scene(353, tmp_path_factory.mktemp("mirrored-353"))
     assert truth["clicked"] == ["T9", "T10", "T11"]
     clicks = Landmarks2D(["T8", "T9", "T10"], np.asarray(truth["clicks_uv_px"], float))
     return ct, centroids, xray, clicks, RegistrationParameters(cache_dir=drr_cache_dir)
