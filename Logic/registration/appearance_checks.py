@@ -222,7 +222,7 @@ class AppearanceChecks:
         self._orientation_under_other_polarity(state, gc_by_storage, unshaded)
         judged = self._orientation_without_clicks(state, gc_by_storage)
         self._polarity_without_shading(state, gc_by_storage)
-        if not judged and state.image_polarity is not None and state.image_polarity.without_shading_mm == 0:
+        if not judged:
             self._orientation_without_clicks(state, gc_by_storage)  # a clear verdict the second opinion left unclear
         self._appearance_warnings(state)
         return state.appearance.as_dict()
@@ -360,12 +360,14 @@ class AppearanceChecks:
         displayed_without_clicks``) is the display: its verdict is taken (clear at ``CLEAR_REFINED_GC``) and the image
         refused (``Appearance.set_orientation_without_clicks``). Otherwise the appearance stays as it was, with the
         evidence recorded (``scores["without_clicks_on_mirror"]``, ``scores["without_clicks_on_<o>"]``). The levels
-        stage keeps the image as stored (a refused image names no level). Returns whether the rivals were judged.
+        stage keeps the image as stored (a refused image names no level). Not once the second opinion's evidence
+        without the shading is in use (its scores are not comparable with the rivals refined on the plain image).
+        Returns whether the rivals were judged.
         ``decide`` asks again after the second opinion (``_polarity_without_shading``) when that left a clear verdict
         unclear (stop 61: tune case 296's mirrored display, bone dark, taken bone bright by 0.222 over the 0.22
         threshold, the second opinion leaning so by 0.026; the mirror was never judged)."""
         a, p, stored = state.appearance, state.parameters, state.image_polarity
-        if (stored is None or a.clear or p.polarity in POLARITIES
+        if (stored is None or stored.without_shading_mm > 0 or a.clear or p.polarity in POLARITIES
                 or (a.orientation == "as-stored" and a.orientation_clear)):
             return False
         judged, shown = self._displays_judged(state, gc_by_storage, stored)
