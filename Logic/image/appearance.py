@@ -105,11 +105,14 @@ The orientation check at the clicks needs a clear polarity, and on a mirrored di
 finds no aligned spine under either polarity: its verdict stays unclear, sometimes for the wrong polarity (the
 appearance benchmark, stop 17: 11 of 24 mirrored displays with unnamed clicks unclear, 4 of them taken bone bright). So
 when the polarity at the clicks is unclear (and the user did not set it), it is judged again on the image mirrored
-left-right, exactly as at the clicks (``REFINED_ON_MIRROR``, ``appearance_checks._polarity_on_mirror``). That verdict is
-taken only when it is clear and the mirror then leads the stored image under that polarity by
+left-right, exactly as at the clicks (``REFINED_ON_MIRROR``, ``appearance_checks._polarity_on_displays``). That verdict
+is taken only when it is clear and the mirror then leads the stored image under that polarity by
 ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``click_orientation.stored_against_turned``): the display is
 then mirrored, the image refused, and no level answer confident. Otherwise nothing changes but the record. No threshold
-of its own: the verdict's are the two at the clicks.
+of its own: the verdict's are the two at the clicks. Unnamed clicks fit an upside-down display about as well as an
+upright one (they run along the spine either way), so since stop 62 the same is asked, by the same rule, of the image
+flipped up-down and turned 180 degrees (``refined_on_at_clicks``) where the database could not rule that out under
+either polarity (``appearance_checks._upside_down_rivals``).
 
 A display and its polarity are found together (stop 54). A clear polarity at the clicks that only just cleared its lead
 (by less than ``CHECKED_CLICKS_GC``, not confirmed by a clear second opinion without the shading; the file not stating
@@ -181,7 +184,18 @@ FITTED_MIN_GC = 0.10        # ... and a registration's GC before its keeping the
 #                             right and none wrong, 0.20 broke 3; 0 until then; no clear verdict changes below 0.30)
 REFINED_AT_DATABASE_POSES = "refined"            # no clicks: each polarity's spatial-map peaks refined on the image
 REFINED_AT_CLICKS = "at the clicks' poses"        # registered where the clicks put the CT (click_polarity)
-REFINED_ON_MIRROR = "at the clicks' poses, on the image mirrored left-right"  # ... on the mirrored display
+ON_TURNED_AT_CLICKS = f"{REFINED_AT_CLICKS}, on the image "  # ... on a turned or mirrored display
+
+
+def refined_on_at_clicks(orientation: str, without_shading_mm: float = 0.0) -> str:
+    """With clicks: how a polarity registered where the clicks put the CT on orientation ``orientation`` of the image
+    (the clicks turned with it; compared without the shading above ``without_shading_mm`` when > 0) was measured
+    (``decided_by``)."""
+    shading = f", without the shading above {without_shading_mm:g} mm" if without_shading_mm > 0 else ""
+    return ON_TURNED_AT_CLICKS + orientation.replace("-", " ") + shading
+
+
+REFINED_ON_MIRROR = refined_on_at_clicks("mirrored-left-right")  # ... on the mirrored display
 
 
 def refined_on_without_clicks(orientation: str) -> str:
@@ -199,9 +213,16 @@ CHECKED_CLICKS_GC = CHECKED_REFINED_GC  # with clicks: the same (stop 36; no tun
 WITHOUT_SHADING_MM = 20.0   # no clicks, the second opinion: the shading removed above this scale (detector mm)
 REFINED_WITHOUT_SHADING = f"refined, without the shading above {WITHOUT_SHADING_MM:g} mm"  # no clicks, unshaded
 REFINED_AT_CLICKS_WITHOUT_SHADING = f"at the clicks' poses, without the shading above {WITHOUT_SHADING_MM:g} mm"
-REFINED_ON_MIRROR_WITHOUT_SHADING = f"{REFINED_ON_MIRROR}, without the shading above {WITHOUT_SHADING_MM:g} mm"
 REFINED_WITH_ORIENTATION = f"{REFINED_AT_CLICKS}, with the display's orientation judged under both polarities"
-AT_CLICKS = (REFINED_AT_CLICKS, REFINED_ON_MIRROR, REFINED_AT_CLICKS_WITHOUT_SHADING, REFINED_ON_MIRROR_WITHOUT_SHADING)
+
+
+def measured_at_clicks(refined_by: str) -> bool:
+    """Whether scores measured ``refined_by`` were registered where the clicks put the CT (as stored, on a turned or
+    mirrored display, or without the shading): their verdict is ``verdict_at_clicks``'s."""
+    return refined_by in (REFINED_AT_CLICKS, REFINED_AT_CLICKS_WITHOUT_SHADING) or refined_by.startswith(
+        ON_TURNED_AT_CLICKS)
+
+
 CLEAR_ORIENTATION_GC = 0.03  # the stored orientation must lead every other by this much
 REFUSE_ORIENTATION_GC = 0.12  # another orientation must lead the stored one by this much to be called
 CLEAR_ORIENTATION_AT_CLICKS_GC = 0.05   # at the clicks' poses: the stored orientation's lead called clear
@@ -540,7 +561,7 @@ def decide_polarity(database: dict, refined: dict | None, requested: str, header
         evidence, threshold, by = database, CLEAR_POLARITY_GC, "image"
     else:
         evidence, threshold, by = refined, CLEAR_REFINED_GC, f"image ({refined_by})"
-    if refined is not None and refined_by in AT_CLICKS:
+    if refined is not None and measured_at_clicks(refined_by):
         threshold = CLEAR_CLICKS_GC
         seen, gap, clear = verdict_at_clicks(refined, fits or {})
         why = ("no registration of it keeps the clicks fitted" if not (fits or {}).get(seen) else

@@ -10,9 +10,9 @@ lead) and the user did not set the polarity:
 3. the display's orientation from the database (``orientation_scores``) and, with clicks and a clear polarity,
    at the clicks (``click_orientation``);
 4. with clicks, a second opinion without the image's shading (``_polarity_at_clicks_without_shading``; asked of a
-   clear verdict by less than ``CHECKED_CLICKS_GC`` too), then the
-   image mirrored left-right (``_polarity_on_mirror``; without the shading too when the second opinion is clear):
-   a mirrored display is refused; then a clear verdict the second opinion did not confirm has the display judged
+   clear verdict by less than ``CHECKED_CLICKS_GC`` too), then the image mirrored left-right and, with unnamed
+   clicks, upside down (``_polarity_on_displays``; without the shading too when the second opinion is clear): a
+   display so shown is refused; then a clear verdict the second opinion did not confirm has the display judged
    under the other polarity too (``_orientation_under_other_polarity``);
 5. without clicks, the image mirrored left-right, and flipped, turned 180 degrees or (square detectors) turned a
    quarter where the database could not rule that out under either polarity (``_orientation_without_clicks``; a
@@ -45,12 +45,11 @@ import numpy as np
 from carmreg.logic.image.appearance import (
     CHECKED_CLICKS_GC,
     CHECKED_REFINED_GC,
+    ON_TURNED_AT_CLICKS,
     POLARITIES,
     REFINED_AT_CLICKS,
     REFINED_AT_CLICKS_WITHOUT_SHADING,
     REFINED_AT_DATABASE_POSES,
-    REFINED_ON_MIRROR,
-    REFINED_ON_MIRROR_WITHOUT_SHADING,
     REFINED_WITHOUT_SHADING,
     WITHOUT_SHADING_MM,
     Appearance,
@@ -60,6 +59,7 @@ from carmreg.logic.image.appearance import (
     decide_polarity,
     displayed_without_clicks,
     orientation_scores,
+    refined_on_at_clicks,
     refined_on_without_clicks,
     stated_storage,
 )
@@ -100,7 +100,9 @@ from carmreg.logic.registration.preflight import MIN_CLICKS
 from carmreg.logic.registration.spatial import spatial_search
 from carmreg.logic.registration.state import RegistrationState
 
-WITHOUT_CLICKS_TURNS = (MIRROR, "flipped-up-down", "turned-180")
+UPSIDE_DOWN = ("flipped-up-down", "turned-180")
+"""The displays that keep the image's shape and show the spine upside down: unnamed clicks cannot tell them."""
+WITHOUT_CLICKS_TURNS = (MIRROR, *UPSIDE_DOWN)
 """The displays ``_orientation_without_clicks`` refines on any detector: those that keep the image's shape; the mirror
 always, the others when not ruled out."""
 
@@ -113,6 +115,34 @@ def _rivals_without_clicks(database_scores: dict, pixel_spacing_mm: tuple) -> li
     square = bool(np.isclose(pixel_spacing_mm[0], pixel_spacing_mm[1], rtol=1e-6))
     shown = WITHOUT_CLICKS_TURNS + (QUARTER_TURNED if square else ())
     return [o for o in rival_orientations(database_scores) if o in shown]
+
+
+def _upside_down_rivals(state: RegistrationState) -> list[str]:
+    """With unnamed clicks, the upside-down displays judged at the clicks when the polarity is unclear there: the
+    display the database refuses the image for (``Appearance.orientation``, its verdict) when that is the flip or the
+    half turn, none when it is another; else the flip and the half turn where the database could not rule them out
+    under either polarity (``rival_orientations``; the polarity in use's first, in the database's order). None with
+    named clicks. Unnamed clicks run along the spine either way up, so as stored they fit an upside-down display
+    about as well as an upright one; named clicks on such a display run bottom to top and are refused before
+    (``preflight``), and a quarter turn puts the clicks across the image, refused there too. Under the polarity in
+    use the database can rule the right display out (stop 56: tune case 502's half turn under bone bright, 0.27
+    against 0.31 as stored); under the other polarity it rarely rules either out. A display the database refuses
+    is the one judged: judged on the other upside-down display too, report case 307's flipped TIFF (the database's
+    flip 0.56 against 0.36 as stored) was taken as turned 180 degrees at the clicks (stop 62)."""
+    a = state.appearance
+    if state.xray_landmarks.named:
+        return []
+    if a.orientation != "as-stored":
+        return [a.orientation] if a.orientation in UPSIDE_DOWN else []
+    other = _database_orientation(state, not a.bone_dark)
+    ranked = rival_orientations(a.orientation_scores) + rival_orientations(other)
+    return [o for o in dict.fromkeys(ranked) if o in UPSIDE_DOWN]
+
+
+def _at_clicks_key(orientation: str) -> str:
+    """The ``Appearance.scores`` key of the polarity judged at the clicks on ``orientation`` (the mirror's as since
+    stop 17)."""
+    return "on_mirror" if orientation == MIRROR else f"on_{orientation}"
 
 
 def _stated(state: RegistrationState) -> tuple[str | None, str]:
@@ -218,7 +248,7 @@ class AppearanceChecks:
         self._use_appearance(state, a, gc_by_storage)
         self._orientation_at_clicks(state, "spatial")
         unshaded = self._polarity_at_clicks_without_shading(state, gc_by_storage)
-        self._polarity_on_mirror(state, gc_by_storage, unshaded)
+        self._polarity_on_displays(state, gc_by_storage, unshaded)
         self._orientation_under_other_polarity(state, gc_by_storage, unshaded)
         judged = self._orientation_without_clicks(state, gc_by_storage)
         self._polarity_without_shading(state, gc_by_storage)
@@ -241,7 +271,7 @@ class AppearanceChecks:
         stage registers on the image as stored converted with it, and only the contest's winner judged at the
         clicks too (``with_winner``) can make it clear. Otherwise the appearance stays as it was. Either way
         ``scores["at_clicks_without_shading"]`` records it. It runs before the check on the mirror
-        (``_polarity_on_mirror``), which judges the mirror without the shading too when this verdict is clear and
+        (``_polarity_on_displays``), which judges the mirror without the shading too when this verdict is clear and
         the polarity is then unclear (a clear first verdict this one confirms stays clear: no mirror check).
         Returns the evidence without the shading when its verdict is clear, else None."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
@@ -261,41 +291,55 @@ class AppearanceChecks:
         self._use_appearance(state, again, gc_by_storage)
         return unshaded
 
-    def _polarity_on_mirror(self, state: RegistrationState, gc_by_storage: dict,
-                            unshaded: ClickPolarity | None = None) -> None:
+    def _polarity_on_displays(self, state: RegistrationState, gc_by_storage: dict,
+                              unshaded: ClickPolarity | None = None) -> None:
         """With clicks, and a polarity the image left unclear at them (the user did not set it): the polarity judged
-        again on the image mirrored left-right, the clicks mirrored with it, exactly as at the clicks
-        (``polarity_at_clicks``; a mirrored display shows no aligned spine as stored, under either polarity). Taken
-        only when that verdict is clear and the mirror then leads the stored image under that polarity by
-        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
-        ``Appearance.set_orientation_at_clicks``): the display is mirrored, the image refused, no level answer
-        confident. Otherwise the appearance stays as it was, with the mirror's evidence recorded
-        (``scores["on_mirror"]``). ``unshaded``: the second opinion's evidence at the clicks when its verdict is
-        clear (``_polarity_at_clicks_without_shading``); the mirror is then judged without the shading too and
-        compared with it: judged with the shading, a large patient's shading can fit the mirror better than the
-        faint bone fits as stored (seen: report case 125, bone bright, names one level off: unclear at the clicks,
-        bone bright without the shading by 0.39, then taken bone dark and mirrored on the mirror by 0.27)."""
-        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        again on the image mirrored left-right, then (unnamed clicks) flipped up-down and turned 180 degrees where
+        the database could not rule that out under either polarity (``_upside_down_rivals``), each with the clicks
+        turned with it, exactly as at the clicks (``_polarity_on_display``); the first display so taken ends it. A
+        mirrored display shows no aligned spine as stored under either polarity, and neither does an upside-down one
+        with unnamed clicks (the clicks fit either way up, the CT only head up): the verdict as stored stays unclear,
+        sometimes for the wrong polarity (stop 62, tune half 288-298 and cases 502-508, unnamed clicks: 6 of 20
+        flipped or half-turned displays unclear, 2 of them wrong, where the image turned back tells it clearly)."""
+        a, cp, p = state.appearance, state.click_polarity, state.parameters
         if cp is None or a.clear or p.polarity in POLARITIES:
             return
-        if unshaded is None:
-            stored, refined_by, where = cp, REFINED_ON_MIRROR, "on the image mirrored left-right"
-        else:
-            stored, refined_by = unshaded, REFINED_ON_MIRROR_WITHOUT_SHADING
-            where = "on the image mirrored left-right, without its shading"
-        mirrored = self._leaders_judged_again(state, lambda ctx: self._on_mirror(ctx, unshaded is not None),
-                                              turned_clicks(state.xray_landmarks, MIRROR, xray.size_px), where)
-        a.scores["on_mirror"] = on_mirror = mirrored.as_dict()
-        again = self._polarity_again(state, mirrored.scores, refined_by, mirrored.fits)
+        for o in [MIRROR, *_upside_down_rivals(state)]:
+            if self._polarity_on_display(state, gc_by_storage, unshaded, o):
+                return
+
+    def _polarity_on_display(self, state: RegistrationState, gc_by_storage: dict, unshaded: ClickPolarity | None,
+                             orientation: str) -> bool:
+        """The polarity judged at the clicks on ``orientation`` of the image, the clicks turned with it. Taken only
+        when that verdict is clear and the display then leads the stored image under that polarity by
+        ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
+        ``Appearance.set_orientation_at_clicks``): the display is so shown, the image refused, no level answer
+        confident; returns whether it was. Otherwise the appearance stays as it was, with the display's evidence
+        recorded (``scores["on_mirror"]``, ``scores["on_<orientation>"]``). ``unshaded``: the second opinion's
+        evidence at the clicks when its verdict is clear (``_polarity_at_clicks_without_shading``); the display is
+        then judged without the shading too and compared with it: judged with the shading, a large patient's
+        shading can fit the mirror better than the faint bone fits as stored (seen: report case 125, bone bright,
+        names one level off: unclear at the clicks, bone bright without the shading by 0.39, then taken bone dark
+        and mirrored on the mirror by 0.27)."""
+        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
+        stored = cp if unshaded is None else unshaded
+        where = f"on the image {orientation.replace('-', ' ')}" + ("" if unshaded is None else ", without its shading")
+        turned = self._leaders_judged_again(state, lambda ctx: self._on_display(ctx, orientation, unshaded is not None),
+                                            turned_clicks(state.xray_landmarks, orientation, xray.size_px), where)
+        a.scores[_at_clicks_key(orientation)] = turned.as_dict()
+        again = self._polarity_again(state, turned.scores,
+                                     refined_on_at_clicks(orientation, WITHOUT_SHADING_MM if unshaded else 0.0),
+                                     turned.fits)
         if not again.clear:
-            return
-        again.scores.update({k: v for k, v in a.scores.items() if k.startswith("at_clicks")})
-        again.scores["on_mirror"] = on_mirror
+            return False
+        again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))})
         self._database_verdicts(state, again, gc_by_storage)
-        again.set_orientation_at_clicks(stored_against_turned(stored, mirrored, MIRROR, again.polarity,
+        again.set_orientation_at_clicks(stored_against_turned(stored, turned, orientation, again.polarity,
                                                               p.identify.rule).as_dict())
-        if again.orientation == MIRROR:
-            self._use_appearance(state, again, gc_by_storage)
+        if again.orientation != orientation:
+            return False
+        self._use_appearance(state, again, gc_by_storage)
+        return True
 
     def _orientation_under_other_polarity(self, state: RegistrationState, gc_by_storage: dict,
                                           unshaded: ClickPolarity | None) -> None:
@@ -331,11 +375,11 @@ class AppearanceChecks:
             self._use_appearance(state, other, gc_by_storage)
 
     @staticmethod
-    def _on_mirror(ctx: FitContext, without_shading: bool) -> FitContext:
-        """``ctx`` on the image mirrored left-right, compared without its shading above ``WITHOUT_SHADING_MM`` when
+    def _on_display(ctx: FitContext, orientation: str, without_shading: bool) -> FitContext:
+        """``ctx`` on ``orientation`` of the image, compared without its shading above ``WITHOUT_SHADING_MM`` when
         ``without_shading``."""
-        mirrored = oriented_context(ctx, MIRROR)
-        return unshaded_context(mirrored, WITHOUT_SHADING_MM) if without_shading else mirrored
+        turned = oriented_context(ctx, orientation)
+        return unshaded_context(turned, WITHOUT_SHADING_MM) if without_shading else turned
 
     def _leaders_judged_again(self, state: RegistrationState, change, clicks: Landmarks2D, where: str
                               ) -> ClickPolarity:
@@ -647,14 +691,14 @@ class AppearanceChecks:
     def _refused_at_clicks(a) -> bool:
         """Whether the appearance ``a`` refuses the display only on the orientation check at the clicks
         (``set_orientation_at_clicks``) of the stored image's polarity verdict: not on the database's scores, the
-        mirror's polarity verdict (``_polarity_on_mirror``) or without clicks. That check judged the leading
-        labellings only (and, on a close call, their neighbours), which may all be wrong (seen: report case 99's
-        intensifier images, T9-T11 clicked, judged on T6-T8 and T8-T10 at GC 0.32, the mirror 0.43 ahead by 0.11;
-        the contest's winner T9-T11 then reached 0.82 as stored; the close call's neighbours now settle that
-        case first); the levels' winner judged too (``with_winner``) may overrule it."""
+        polarity verdict on a turned or mirrored display (``_polarity_on_displays``) or without clicks. That check
+        judged the leading labellings only (and, on a close call, their neighbours), which may all be wrong
+        (seen: report case 99's intensifier images, T9-T11 clicked, judged on T6-T8 and T8-T10 at GC 0.32, the
+        mirror 0.43 ahead by 0.11; the contest's winner T9-T11 then reached 0.82 as stored; the close call's
+        neighbours now settle that case first); the levels' winner judged too (``with_winner``) may overrule it."""
         return (a.orientation_at_clicks is not None and a.orientation != "as-stored"
                 and database_orientation(a.orientation_scores) == "as-stored"
-                and REFINED_ON_MIRROR not in a.decided_by)
+                and ON_TURNED_AT_CLICKS not in a.decided_by)
 
     def _polarity_at_clicks(self, state: RegistrationState, gc_by_storage: dict) -> ClickPolarity | None:
         """The leading labellings registered under both polarities (``click_polarity``); None without enough

@@ -32,6 +32,14 @@ it) and always the left-right mirror, the display setting most often wrong: even
 checked against it (the database once called a mirrored display clearly as stored, lead 0.064; only its unclear
 polarity kept that answer from being trusted). ``Appearance.set_orientation_at_clicks`` decides from g. Frames
 and units as in ``labelling_fit``; pixel (u, v) = (column, row), 0-based centres.
+
+A rival keeps the clicks fitted when its best registration's click mPDE is within the level rule's landmark limit
+against the stored orientation's best (``fitted_limit_mm``), except that a stored registration that does not show
+the spine - its GC under ``MIN_CLICKS_GC``, where the landmark term alone placed it - sets no reference, only the
+rule's cap (stop 62: report case 295's intensifier PNG turned 180 degrees, unnamed clicks, stored best GC 0.108 at
+0.83 mm; the half turn 0.832 at 1.92 mm, over 1.5 x 0.83 + 0.5 = 1.75 mm, and so not taken). Replayed on every
+judgement recorded since stop 17 (469 polarity verdicts on a turned display, 3,915 orientation checks at the
+clicks): no other decision changes.
 """
 
 from __future__ import annotations
@@ -41,7 +49,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry
-from carmreg.logic.image.appearance import CLEAR_ORIENTATION_GC, CLOSE_ORIENTATION_AT_CLICKS_GC, displayed_rival
+from carmreg.logic.image.appearance import (
+    CLEAR_ORIENTATION_GC,
+    CLOSE_ORIENTATION_AT_CLICKS_GC,
+    MIN_CLICKS_GC,
+    displayed_rival,
+)
 from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_intrinsics
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
@@ -84,13 +97,13 @@ def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
 def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,
                           names_follow_clicks: bool, memo: dict | None = None) -> ClickOrientation:
     """Register every labelling of ``judged`` (the polarity check's registrations under the polarity used, as
-    stored) on each rival orientation; each orientation's score is its best (module docstring).
-    ``contexts``: {orientation: FitContext} on that orientation of the X-ray (``oriented_context``);
-    ``size_px``: (columns, rows) of the image as stored; ``names_follow_clicks``: the user named the clicks (module
-    docstring); ``rule``: the level confidence rule, whose landmark limit says whether a rival's registration
-    keeps the clicks fitted as well as the stored one's. A labelling whose clicks cannot be fitted within the
-    rule's cap even by the landmarks alone is not refined; an orientation with none refined scores nan (on a
-    correctly displayed image, a turn of 90 degrees lays the spine across the detector).
+    stored) on each rival orientation; each orientation's score is its best (module docstring). ``contexts``:
+    {orientation: FitContext} on that orientation of the X-ray (``oriented_context``); ``size_px``: (columns, rows)
+    of the image as stored; ``names_follow_clicks``: the user named the clicks (module docstring); ``rule``: the
+    level confidence rule, whose landmark limit says whether a rival's registration keeps the clicks fitted as well
+    as the stored one's (``fitted_limit_mm``). A labelling whose clicks cannot be fitted within the rule's cap even
+    by the landmarks alone is not refined; an orientation with none refined scores nan (on a correctly displayed
+    image, a turn of 90 degrees lays the spine across the detector).
 
     ``memo``: registrations of an earlier check on the same image (the caller keeps one dict per attenuation
     image), reused and extended: a registration is seeded, so the same labelling on the same orientation gives
@@ -110,10 +123,19 @@ def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int]
         top = max(refined, key=lambda f: f.similarity) if refined else min(fits, key=lambda f: f.fine.mpde_mm)
         scores[name] = float(top.similarity)  # nan: no labelling's clicks could be fitted on it
         mpde[name] = float(top.mpde_mm if top.refined else top.fine.mpde_mm)
-    limit = landmark_limit_mm(mpde["as-stored"], rule)
+    limit = fitted_limit_mm(scores["as-stored"], mpde["as-stored"], rule)
     fitted = {name: bool(name == "as-stored" or (np.isfinite(scores[name]) and m <= limit))
               for name, m in mpde.items()}
     return ClickOrientation([list(f.labels) for f in judged], scores, mpde, fitted)
+
+
+def fitted_limit_mm(stored_gc: float, stored_mpde_mm: float, rule: ConfidenceRule) -> float:
+    """The click mPDE (detector mm) a rival orientation's best registration may have and still keep the clicks
+    fitted: the level rule's landmark limit against the stored orientation's best registration (GC ``stored_gc``,
+    mPDE ``stored_mpde_mm``), or the rule's cap alone when that registration's GC is under ``MIN_CLICKS_GC`` (it
+    does not show the spine; the landmark term alone placed it: module docstring)."""
+    reference = stored_mpde_mm if stored_gc >= MIN_CLICKS_GC else float("nan")
+    return landmark_limit_mm(reference, rule)
 
 
 def close_call(scores: dict) -> bool:
@@ -139,13 +161,13 @@ def displayed_under_other_polarity(evidence: ClickOrientation, taken_gc: float) 
 def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: str, polarity: str,
                           rule: ConfidenceRule) -> ClickOrientation:
     """The orientation evidence of a polarity judged on orientation ``name`` of the image as well as stored
-    (``appearance_checks._polarity_on_mirror``): each orientation's score is its best registration under ``polarity``
+    (``appearance_checks._polarity_on_display``): each orientation's score is its best registration under ``polarity``
     (``polarity_at_clicks`` on the stored image, ``stored``, and on the turned one with the clicks turned,
     ``turned``); the turned one keeps the clicks fitted when its own verdict says so (``turned.fits``) and its mPDE
-    is within the level rule's limit against the stored one's, as ``orientation_at_clicks`` asks of a rival."""
+    is within ``fitted_limit_mm`` of the stored one, as ``orientation_at_clicks`` asks of a rival."""
     best = {o: max(cp.registered[polarity], key=lambda f: f.similarity)
             for o, cp in (("as-stored", stored), (name, turned))}
-    limit = landmark_limit_mm(best["as-stored"].mpde_mm, rule)
+    limit = fitted_limit_mm(best["as-stored"].similarity, best["as-stored"].mpde_mm, rule)
     fitted = {"as-stored": True, name: bool(turned.fits[polarity] and best[name].mpde_mm <= limit)}
     return ClickOrientation([list(lb) for lb in turned.labels], {o: float(f.similarity) for o, f in best.items()},
                             {o: float(f.mpde_mm) for o, f in best.items()}, fitted)

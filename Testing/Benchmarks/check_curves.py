@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from curve_tables import EVALUATIONS, allowances, extract, still_to_come_table, value_after
 
-ROLES = {"_polarity_on_mirror": "polarity on the mirror", "judged_also": "polarity with the winner",
+ROLES = {"_polarity_on_display": "polarity on a turned display", "judged_also": "polarity with the winner",
          "polarity_at_clicks": "polarity", "orientation_at_clicks": "orientation"}
 
 

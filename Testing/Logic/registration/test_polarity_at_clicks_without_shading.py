@@ -1,7 +1,7 @@
 """With clicks, the second opinion on the polarity (``appearance_checks._polarity_at_clicks_without_shading``), on
 cases of the appearance benchmark (the second CT): a clear verdict without the image's shading that names the
 other polarity is used, never clear; one that agrees with a polarity still unclear has the mirror judged without
-the shading too (``_polarity_on_mirror``); none is asked when the clicks' verdict is clear by ``CHECKED_CLICKS_GC``
+the shading too (``_polarity_on_displays``); none is asked when the clicks' verdict is clear by ``CHECKED_CLICKS_GC``
 or the file states its polarity, and a clear verdict by less is asked too. Case 92 also shows that a winner the
 polarity was judged on gets no second contest under the other polarity (stop 42,
 ``AppearanceChecks.worth_other_polarity``)."""
