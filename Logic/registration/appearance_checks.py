@@ -294,9 +294,10 @@ class AppearanceChecks:
     def _polarity_on_displays(self, state: RegistrationState, gc_by_storage: dict,
                               unshaded: ClickPolarity | None = None) -> None:
         """With clicks, and a polarity the image left unclear at them (the user did not set it): the polarity judged
-        again on the image mirrored left-right, then (unnamed clicks) flipped up-down and turned 180 degrees where
-        the database could not rule that out under either polarity (``_upside_down_rivals``), each with the clicks
-        turned with it, exactly as at the clicks (``_polarity_on_display``); the first display so taken ends it. A
+        again on the image mirrored left-right, then (unnamed clicks) flipped up-down and turned 180 degrees: the
+        one the database refuses the image for, else those it could not rule out under either polarity
+        (``_upside_down_rivals``), each with the clicks turned with it, exactly as at the clicks
+        (``_polarity_on_display``); the first display so taken ends it. A
         mirrored display shows no aligned spine as stored under either polarity, and neither does an upside-down one
         with unnamed clicks (the clicks fit either way up, the CT only head up): the verdict as stored stays unclear,
         sometimes for the wrong polarity (stop 62, tune half 288-298 and cases 502-508, unnamed clicks: 6 of 20
