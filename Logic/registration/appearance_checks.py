@@ -107,36 +107,41 @@ WITHOUT_CLICKS_TURNS = (MIRROR, *UPSIDE_DOWN)
 always, the others when not ruled out."""
 
 
-def _rivals_without_clicks(database_scores: dict, pixel_spacing_mm: tuple) -> list[str]:
-    """The mirror, and the displays the database could not rule out (``rival_orientations``): of
-    ``WITHOUT_CLICKS_TURNS`` on any detector, and the quarter turns (``turn.QUARTER_TURNED``) too on a square one
-    with square pixels, where the turned image lies on the same pixel grid as the database's DRRs (the database
-    scores a quarter turn only when the image is square: ``orientation_scores``)."""
+def _rivals_under_either_polarity(state: RegistrationState) -> list[str]:
+    """The displays the database could not rule out (``rival_orientations``) under the polarity in use, then those it
+    could not rule out under the other polarity, each in the database's order, each once. Under the polarity in use
+    the database can rule the right display out and keep it under the other (tune case 502's half turn under bone
+    bright, 0.27 against 0.31 as stored; bone dark 0.64 against 0.36); under the other polarity it rarely rules
+    any display out (stop 61)."""
+    a = state.appearance
+    other = _database_orientation(state, not a.bone_dark)
+    return list(dict.fromkeys(rival_orientations(a.orientation_scores) + rival_orientations(other)))
+
+
+def _shown_without_clicks(pixel_spacing_mm: tuple) -> tuple[str, ...]:
+    """The displays ``_orientation_without_clicks`` may judge: ``WITHOUT_CLICKS_TURNS`` on any detector, and the
+    quarter turns (``turn.QUARTER_TURNED``) too on a square one with square pixels, where the turned image lies on
+    the same pixel grid as the database's DRRs (the database scores a quarter turn only when the image is square:
+    ``orientation_scores``)."""
     square = bool(np.isclose(pixel_spacing_mm[0], pixel_spacing_mm[1], rtol=1e-6))
-    shown = WITHOUT_CLICKS_TURNS + (QUARTER_TURNED if square else ())
-    return [o for o in rival_orientations(database_scores) if o in shown]
+    return WITHOUT_CLICKS_TURNS + (QUARTER_TURNED if square else ())
 
 
 def _upside_down_rivals(state: RegistrationState) -> list[str]:
     """With unnamed clicks, the upside-down displays judged at the clicks when the polarity is unclear there: the
     display the database refuses the image for (``Appearance.orientation``, its verdict) when that is the flip or the
-    half turn, none when it is another; else the flip and the half turn where the database could not rule them out
-    under either polarity (``rival_orientations``; the polarity in use's first, in the database's order). None with
-    named clicks. Unnamed clicks run along the spine either way up, so as stored they fit an upside-down display
-    about as well as an upright one; named clicks on such a display run bottom to top and are refused before
-    (``preflight``), and a quarter turn puts the clicks across the image, refused there too. Under the polarity in
-    use the database can rule the right display out (stop 56: tune case 502's half turn under bone bright, 0.27
-    against 0.31 as stored); under the other polarity it rarely rules either out. A display the database refuses
-    is the one judged: judged on the other upside-down display too, report case 307's flipped TIFF (the database's
-    flip 0.56 against 0.36 as stored) was taken as turned 180 degrees at the clicks (stop 62)."""
+    half turn, none when it is another; else the flip and the half turn among ``_rivals_under_either_polarity``.
+    None with named clicks. Unnamed clicks run along the spine either way up, so as stored they fit an upside-down
+    display about as well as an upright one; named clicks on such a display run bottom to top and are refused before
+    (``preflight``), and a quarter turn puts the clicks across the image, refused there too. A display the database
+    refuses is the one judged: judged on the other upside-down display too, report case 307's flipped TIFF (the
+    database's flip 0.56 against 0.36 as stored) was taken as turned 180 degrees at the clicks (stop 62)."""
     a = state.appearance
     if state.xray_landmarks.named:
         return []
     if a.orientation != "as-stored":
         return [a.orientation] if a.orientation in UPSIDE_DOWN else []
-    other = _database_orientation(state, not a.bone_dark)
-    ranked = rival_orientations(a.orientation_scores) + rival_orientations(other)
-    return [o for o in dict.fromkeys(ranked) if o in UPSIDE_DOWN]
+    return [o for o in _rivals_under_either_polarity(state) if o in UPSIDE_DOWN]
 
 
 def _at_clicks_key(orientation: str) -> str:
@@ -431,20 +436,17 @@ class AppearanceChecks:
         """({display: its ``ImagePolarity``}, ``displayed_without_clicks`` of them against ``stored``): each polarity
         refined on each rival display (``polarity_from_image``), recorded in the appearance's scores as judged. The
         rivals: the mirror always, and the image flipped up-down, turned 180 degrees and, on a square detector,
-        turned a quarter (mirrored or not) where the database could not rule that out under either polarity
-        (``_rivals_without_clicks``; the polarity is unclear here, and a display the database rules out under the
-        polarity in use can lead clearly under the other: stop 61, tune case 502's intensifier PNG turned 180
-        degrees, taken bone bright, unclear, where the database's turned-180 scores 0.27 against 0.31 as stored, and
-        bone dark 0.64 against 0.36). They are judged in the database's order (those of the polarity in use first),
+        turned a quarter (mirrored or not; ``_shown_without_clicks``) where the database could not rule that out
+        under either polarity (``_rivals_under_either_polarity``; the polarity is unclear here, and a display the
+        database rules out under the polarity in use can lead clearly under the other: stop 61, tune case 502's
+        intensifier PNG turned 180 degrees, taken bone bright, unclear). They are judged in that order,
         and once the display so far has a clear verdict the rest are not (stop 61, tune half 288-298: judging every
         rival cost 133 judgements where 39 named the same displays and polarities; without the clear verdict,
         report cases 297 and 299 named the first rival leading by the margin, a flip at a polarity gap of 0.030 and
         a half turn at 0.114, where judging on found the display)."""
-        a, spacing = state.appearance, state.geometry.intrinsics.pixel_spacing_mm
-        rivals = _rivals_without_clicks(a.orientation_scores, spacing)
-        other = _rivals_without_clicks(_database_orientation(state, not a.bone_dark), spacing)
+        a, displays = state.appearance, _shown_without_clicks(state.geometry.intrinsics.pixel_spacing_mm)
         judged, shown = {}, None
-        for o in rivals + [o for o in other if o not in rivals]:
+        for o in [o for o in _rivals_under_either_polarity(state) if o in displays]:
             judged[o] = self.polarity_from_image(state, gc_by_storage, o)
             a.scores[_without_clicks_key(o)] = judged[o].as_dict()
             shown = displayed_without_clicks(stored.scores, {o: j.scores for o, j in judged.items()})

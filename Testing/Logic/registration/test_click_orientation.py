@@ -39,7 +39,8 @@ from carmreg.logic.registration import appearance_checks
 from carmreg.logic.registration.appearance_checks import (
     AppearanceChecks,
     _database_orientation,
-    _rivals_without_clicks,
+    _rivals_under_either_polarity,
+    _shown_without_clicks,
     _upside_down_rivals,
 )
 from carmreg.logic.registration.click_orientation import (
@@ -349,14 +350,19 @@ def test_without_clicks_a_mirrored_display_gets_its_polarity_from_the_mirror_and
     assert "refined on the image as stored and mirrored left right" in a.summary()
 
 
-def test_without_clicks_a_quarter_turn_is_a_rival_on_a_square_detector_with_square_pixels_only():
-    """``_rivals_without_clicks``: the database's rivals (``rival_orientations``), the quarter turns among them only
-    where the turned image lies on the database's pixel grid."""
-    scores = {"as-stored": 0.30, MIRROR: 0.10, "flipped-up-down": 0.20, "turned-180": 0.29, "turned-90": 0.35,
+def test_without_clicks_a_quarter_turn_is_a_rival_on_a_square_detector_with_square_pixels_only(monkeypatch):
+    """``_shown_without_clicks`` among ``_rivals_under_either_polarity``: the database's rivals (``rival_orientations``)
+    under the polarity in use, then the other's not yet named; the quarter turns among them only where the turned
+    image lies on the database's pixel grid."""
+    in_use = {"as-stored": 0.30, MIRROR: 0.10, "flipped-up-down": 0.20, "turned-180": 0.29, "turned-90": 0.35,
               "turned-270": 0.31, "turned-90-and-mirrored": 0.05, "turned-270-and-mirrored": 0.28}
-    assert _rivals_without_clicks(scores, (0.4, 0.4)) == ["turned-90", "turned-270", "turned-180",
-                                                          "turned-270-and-mirrored", MIRROR]
-    assert _rivals_without_clicks(scores, (0.4, 0.5)) == ["turned-180", MIRROR]
+    other = {**in_use, MIRROR: 0.32, "turned-90": 0.10, "flipped-up-down": 0.285}
+    monkeypatch.setattr(appearance_checks, "_database_orientation", lambda state, bone_dark: other)
+    state = SimpleNamespace(appearance=SimpleNamespace(orientation_scores=in_use, bone_dark=True))
+    rivals = _rivals_under_either_polarity(state)
+    assert rivals == ["turned-90", "turned-270", "turned-180", "turned-270-and-mirrored", MIRROR, "flipped-up-down"]
+    assert [o for o in rivals if o in _shown_without_clicks((0.4, 0.4))] == rivals
+    assert [o for o in rivals if o in _shown_without_clicks((0.4, 0.5))] == ["turned-180", MIRROR, "flipped-up-down"]
 
 
 @pytest.mark.slow
