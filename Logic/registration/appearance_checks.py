@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -51,6 +52,7 @@ from carmreg.logic.image.appearance import (
     REFINED_AT_CLICKS_WITHOUT_SHADING,
     REFINED_AT_DATABASE_POSES,
     REFINED_WITHOUT_SHADING,
+    REFUSE_ORIENTATION_AT_CLICKS_GC,
     WITHOUT_SHADING_MM,
     Appearance,
     dark_storage,
@@ -86,7 +88,9 @@ from carmreg.logic.registration.click_polarity import (
     polarity_at_clicks,
     registered_as_leader,
 )
+from carmreg.logic.registration.early_stop import cannot_lead
 from carmreg.logic.registration.image_polarity import ImagePolarity, polarity_from_image
+from carmreg.logic.registration.image_refine import penalty_bound
 from carmreg.logic.registration.image_starts import image_starts
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
@@ -142,6 +146,39 @@ def _upside_down_rivals(state: RegistrationState) -> list[str]:
     if a.orientation != "as-stored":
         return [a.orientation] if a.orientation in UPSIDE_DOWN else []
     return [o for o in _rivals_under_either_polarity(state) if o in UPSIDE_DOWN]
+
+
+def _stored_best(stored: ClickPolarity, polarity: str) -> float:
+    """The stored image's best GC at the clicks under ``polarity`` (what ``stored_against_turned`` compares a display
+    with)."""
+    return max(f.similarity for f in stored.registered[polarity])
+
+
+def _cannot_lead_stored(state: RegistrationState, stored: ClickPolarity):
+    """``give_up_for(polarity, landmark_pose)`` for a display's registrations (``polarity_at_clicks``): each stops
+    once it cannot end ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity with
+    the clicks within the rule's cap (``early_stop.cannot_lead``; ``image_refine.penalty_bound`` from its start, the
+    landmark fit's pose), the only way the display can be taken (``stored_against_turned``,
+    ``Appearance.set_orientation_at_clicks``). Seen, stop 62: case 425's large patient, correctly displayed, its
+    polarity unclear at the clicks: 22 registrations on three displays, 12 of its 33 s, every one below 0.22 against
+    the stored image's 0.38."""
+    p = state.parameters
+    n_clicks, cap_mm = len(state.xray_landmarks.uv_px), p.identify.rule.max_landmark_mpde_mm
+
+    def give_up_for(polarity: str, landmark_pose: np.ndarray):
+        penalty = penalty_bound(p.refine_coarse, landmark_pose, n_clicks, cap_mm)
+        return cannot_lead(_stored_best(stored, polarity), REFUSE_ORIENTATION_AT_CLICKS_GC, penalty)
+
+    return give_up_for
+
+
+def _within_reach(turned: ClickPolarity, stored: ClickPolarity) -> bool:
+    """Whether a display judged with ``_cannot_lead_stored``'s stops may still be taken: one of its registrations ran
+    in full and ended ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity (a
+    stopped one cannot). It is then judged again in full, as before the stops, so that its verdict is that of full
+    registrations; those that ran in full are recalled (``refinement_memo``)."""
+    return any(f.stopped_at is None and f.similarity >= _stored_best(stored, polarity) + REFUSE_ORIENTATION_AT_CLICKS_GC
+               for polarity, fits in turned.registered.items() for f in fits)
 
 
 def _at_clicks_key(orientation: str) -> str:
@@ -326,12 +363,17 @@ class AppearanceChecks:
         then judged without the shading too and compared with it: judged with the shading, a large patient's
         shading can fit the mirror better than the faint bone fits as stored (seen: report case 125, bone bright,
         names one level off: unclear at the clicks, bone bright without the shading by 0.39, then taken bone dark
-        and mirrored on the mirror by 0.27)."""
-        a, cp, p, xray = state.appearance, state.click_polarity, state.parameters, state.xray
-        stored = cp if unshaded is None else unshaded
+        and mirrored on the mirror by 0.27). The display's registrations stop once they cannot lead the stored image
+        by that margin (``_cannot_lead_stored``); a display one of whose registrations still does is judged again in
+        full (``_within_reach``), so a display is taken on full registrations only."""
+        a, p, xray = state.appearance, state.parameters, state.xray
+        stored = state.click_polarity if unshaded is None else unshaded
         where = f"on the image {orientation.replace('-', ' ')}" + ("" if unshaded is None else ", without its shading")
-        turned = self._leaders_judged_again(state, lambda ctx: self._on_display(ctx, orientation, unshaded is not None),
-                                            turned_clicks(state.xray_landmarks, orientation, xray.size_px), where)
+        clicks = turned_clicks(state.xray_landmarks, orientation, xray.size_px)
+        change = functools.partial(self._on_display, orientation=orientation, without_shading=unshaded is not None)
+        turned = self._leaders_judged_again(state, change, clicks, where, _cannot_lead_stored(state, stored))
+        if _within_reach(turned, stored):
+            turned = self._leaders_judged_again(state, change, clicks, where)
         a.scores[_at_clicks_key(orientation)] = turned.as_dict()
         again = self._polarity_again(state, turned.scores,
                                      refined_on_at_clicks(orientation, WITHOUT_SHADING_MM if unshaded else 0.0),
@@ -387,12 +429,12 @@ class AppearanceChecks:
         turned = oriented_context(ctx, orientation)
         return unshaded_context(turned, WITHOUT_SHADING_MM) if without_shading else turned
 
-    def _leaders_judged_again(self, state: RegistrationState, change, clicks: Landmarks2D, where: str
-                              ) -> ClickPolarity:
+    def _leaders_judged_again(self, state: RegistrationState, change, clicks: Landmarks2D, where: str,
+                              give_up_for=None) -> ClickPolarity:
         """The leading labellings of ``clicks`` registered under both polarities exactly as by ``polarity_at_clicks``,
         on the contexts the first check used (``_polarity_contexts``, its bone-dark storage) each passed through
         ``change(ctx) -> FitContext`` (the image mirrored, or compared without its shading); ``where`` words the
-        progress."""
+        progress; ``give_up_for`` as ``polarity_at_clicks``'s."""
         cp, p = state.click_polarity, state.parameters
         contexts = {polarity: change(ctx) for polarity, ctx in self._polarity_contexts(state, cp.dark_storage).items()}
         plan = plan_contest(contexts["bone-dark"], state.ct_landmarks, clicks, p.identify)
@@ -400,7 +442,7 @@ class AppearanceChecks:
         def progress(done: int, total: int) -> None:
             self._report("spatial", 0.9, f"telling bone-dark from bone-bright {where} ({done + 1} of {total})")
 
-        return polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress)
+        return polarity_at_clicks(contexts, plan, cp.dark_storage, p.identify.rule, progress, give_up_for)
 
     def _orientation_without_clicks(self, state: RegistrationState, gc_by_storage: dict) -> bool:
         """Without clicks, a polarity the image left unclear and an orientation not clearly as stored (the user did

@@ -115,19 +115,28 @@ class ClickPolarity:
         return next((f for f in self.registered.get(polarity, []) if f.names(labels)), None)
 
     def as_dict(self) -> dict:
-        return {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],
-                "dark_storage": self.dark_storage,
-                "similarity": {p: [f.similarity for f in fits] for p, fits in self.registered.items()},
-                "mpde_mm": {p: [f.mpde_mm for f in fits] for p, fits in self.registered.items()}}
+        record = {"scores": dict(self.scores), "fits": dict(self.fits), "labellings": [list(lb) for lb in self.labels],
+                  "dark_storage": self.dark_storage,
+                  "similarity": {p: [f.similarity for f in fits] for p, fits in self.registered.items()},
+                  "mpde_mm": {p: [f.mpde_mm for f in fits] for p, fits in self.registered.items()}}
+        if self.stopped:
+            record["stopped_at_evaluations"] = {p: [f.stopped_at for f in fits] for p, fits in self.registered.items()}
+        return record
+
+    @property
+    def stopped(self) -> bool:
+        """Whether any registration was stopped early (``early_stop``; its scores are then where it stopped)."""
+        return any(f.stopped_at is not None for fits in self.registered.values() for f in fits)
 
 
 def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rule: ConfidenceRule,
-                       progress=None) -> ClickPolarity:
+                       progress=None, give_up_for=None) -> ClickPolarity:
     """Register the leading labellings under each polarity until the scores are clear (module docstring).
     ``contexts``: {polarity: FitContext} whose images are the X-ray converted with that polarity (bone dark with
     ``dark_storage``), without a per-labelling hook (``progress`` reports instead); ``rule``: the level confidence
     rule, whose landmark limits say when the clicks fit; ``progress(done, total)`` is called before each
-    registration."""
+    registration; ``give_up_for(polarity, landmark_pose) -> give_up | None``: how each image refinement may stop
+    early (``early_stop``; None: every one in full)."""
     leaders = list(plan.first) if plan.given_index is not None else list(plan.first[:MAX_UNNAMED_LEADERS])
     count = len(leaders) if plan.given_index is not None else min(UNNAMED_LEADERS, len(leaders))
     registered = {polarity: [] for polarity in contexts}
@@ -140,7 +149,8 @@ def polarity_at_clicks(contexts: dict, plan: ContestPlan, dark_storage: str, rul
                     progress(sum(len(f) for f in registered.values()), count * len(contexts))
                 if i not in landmark_fits:
                     landmark_fits[i] = landmark_fit(ctx, plan.fits[i])
-                registered[polarity].append(registered_as_leader(ctx, plan.fits[i], landmark_fits[i]))
+                give_up = give_up_for(polarity, landmark_fits[i].pose) if give_up_for is not None else None
+                registered[polarity].append(registered_as_leader(ctx, plan.fits[i], landmark_fits[i], give_up))
         evidence = _evidence(registered, [plan.fits[i].labels for i in leaders[:count]], dark_storage, rule)
         if verdict_at_clicks(evidence.scores, evidence.fits)[2]:
             return evidence
@@ -219,10 +229,12 @@ def _evidence(registered: dict, labels: list, dark_storage: str, rule: Confidenc
     return ClickPolarity(scores, fits, {p: list(f) for p, f in registered.items()}, labels, dark_storage)
 
 
-def registered_as_leader(ctx: FitContext, planned: LabellingFit, fine: FineResult | None = None) -> LabellingFit:
+def registered_as_leader(ctx: FitContext, planned: LabellingFit, fine: FineResult | None = None, give_up=None
+                         ) -> LabellingFit:
     """``planned`` (``plan_labelling`` or a ``ContestPlan``'s, depth search only) registered on ``ctx`` as the
-    leaders are (``fit_labelling`` from its landmark fit ``fine``, computed when None), as a new object."""
+    leaders are (``fit_labelling`` from its landmark fit ``fine``, computed when None; ``give_up`` as there), as a
+    new object."""
     fine = landmark_fit(ctx, planned) if fine is None else fine
     return fit_labelling(ctx, LabellingFit(list(planned.labels), planned.shift, planned.points_lps_mm,
-                                           planned.uv_px, planned.depth, fine))
+                                           planned.uv_px, planned.depth, fine), give_up=give_up)
 

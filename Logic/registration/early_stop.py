@@ -16,12 +16,22 @@ as the contest goes on). Its final objective is then taken to be at least ``lowe
 allowance(e)``: it would have ended behind that rival, where it changes nothing.
 
 The verdict must be the one full refinements give, so the contest never stops the surgeon's names nor the first
-two registrations (no rival yet), nor any refitted leader, and ``levels._settle`` completes (in full, the same
-search from the start: a refinement is seeded) every stopped labelling whose lower bound does not clear the final
-rival. Then no stopped labelling can be the winner or the rival, and the margin and checks are those of full
-refinements as long as no refinement improves by more than its allowance: twice the largest improvement seen,
-plus ``SLACK``. Measured on the appearance benchmark's report half (README, stop 18): the same verdicts, margins
-and checks in 240 of 240 runs, 4.4 % of the coarse evaluations saved.
+two registrations (no rival yet), nor any refitted leader, and ``levels._settle`` completes (in full: the same
+seeded search run on from where it stopped, ``labelling_fit.complete``) every stopped labelling whose lower bound
+does not clear the final rival. Then no stopped labelling can be the winner or the rival, and the margin and
+checks are those of full refinements as long as no refinement improves by more than its allowance: twice the
+largest improvement seen, plus ``SLACK``. Measured on the appearance benchmark's report half (README, stop 18):
+the same verdicts, margins and checks in 240 of 240 runs, 4.4 % of the coarse evaluations saved.
+
+A turned display's registrations
+--------------------------------
+With clicks and an unclear polarity, the polarity is judged again on the mirrored and upside-down displays
+(``appearance_checks._polarity_on_display``); a display is taken only when its best registration leads the stored
+image's best under the same polarity by ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks within the rule's cap.
+Each of its registrations stops once it cannot (``cannot_lead``: the bar in GC made a bar in objective with the
+most its landmark and rotation terms can add there, ``image_refine.penalty_bound``). A display one of whose full
+registrations does lead is judged again without stops, its stopped searches run on to their end
+(``RefineResult.resume`` through ``refinement_memo``), so it is taken on full registrations only.
 
 Refits back where they started
 ------------------------------
@@ -81,6 +91,19 @@ class GiveUpAbove:
 def give_up_above(bar: float) -> GiveUpAbove:
     """The ``GiveUpAbove`` of ``bar``."""
     return GiveUpAbove(float(bar))
+
+
+def cannot_lead(reference_gc: float, margin: float, penalty: float) -> GiveUpAbove:
+    """A refinement that matters only if it ends with a similarity of at least ``reference_gc + margin`` at a pose
+    where its landmark and rotation terms add at most ``penalty`` (``image_refine.penalty_bound``): there
+    ``similarity = 1 - f + terms <= 1 - f + penalty``, and ``f`` ends at least ``best - allowance(e)``, so it is
+    stopped once::
+
+        best - allowance(e) > 1 - (reference_gc + margin) + penalty
+
+    (``GiveUpAbove`` of that bar). Used where a turned display must lead the stored image by the refusal margin
+    (``appearance_checks._polarity_on_display``)."""
+    return give_up_above(1.0 - (reference_gc + margin) + penalty)
 
 
 def lower_bound(score: float, stopped_at: int | None) -> float:

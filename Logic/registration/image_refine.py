@@ -68,6 +68,8 @@ class RefineResult:
     rejoined_at: int | None = None      # evaluations after which ``rejoined`` stopped it (None: it did not)
     equalised_similarity: float = float("nan")  # GC at ``pose`` on the equalised X-ray (``agreement``; nan: not
     #                                             measured)
+    resume: object = field(default=None, repr=False, compare=False)  # stopped early: () -> the same search run to
+    #                                             its end from where it stopped (``intensity_refine``); else None
 
 
 @dataclass(frozen=True)
@@ -109,6 +111,20 @@ def _objective(level, geometry, grid: RefineGrid, poses, scores, points_lps_mm, 
     return (1.0 - score) + p.landmark_weight * landmark + p.rotation_weight * rotation, score, pde.mean(axis=-1)
 
 
+def penalty_bound(p: RefineParameters, start_pose: np.ndarray, n_clicks: int, max_mpde_mm: float) -> float:
+    """The most the landmark and rotation terms of ``_objective`` can add at any pose a refinement with ``p`` from
+    ``start_pose`` reaches (each rotation within ``start +- p.bounds``) where the clicks' mPDE is at most
+    ``max_mpde_mm``::
+
+        w_lm n (M / s_click)^2 + w_rot sum_k ((|theta_k| + b_k) / 10 deg)^2
+
+    (the mean of n squared distances whose mean is at most M is at most n M^2, all of it on one click; ``theta`` the
+    start's rotations, ``b`` their bounds). So at such a pose ``1 - similarity >= f - penalty_bound``."""
+    rotations = np.abs(np.asarray(start_pose, float)[3:]) + np.asarray(p.bounds, float)[3:]
+    landmark = p.landmark_weight * n_clicks * (max_mpde_mm / p.click_sd_mm) ** 2 if n_clicks else 0.0
+    return float(landmark + p.rotation_weight * np.sum((rotations / 10.0) ** 2))
+
+
 def grid_scores(p: RefineParameters, grid: RefineGrid):
     """``metrics.prepare`` (``p.metric``) against the grid's image, both sides without their shading when
     ``p.without_shading_mm`` asks (``image.shading``; the DRRs' shading in float32, deterministic and twice as fast).
@@ -129,7 +145,9 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
     best_objective) -> bool``, asked after each generation, stops the search early when True (``early_stop``;
     ``stopped_at`` records when). ``rejoined(best_objective, mean_pose, stds) -> bool``, asked after each
     generation with the search distribution's mean and standard deviations (pose units), stops it when True (a
-    refit back where its labelling already is: ``early_stop.rejoins``; ``rejoined_at`` records when)."""
+    refit back where its labelling already is: ``early_stop.rejoins``; ``rejoined_at`` records when). A search so
+    stopped can be run on to its end (``RefineResult.resume``; ``refinement_memo`` does, when the same refinement is
+    asked for without stopping rules)."""
     p = params or RefineParameters()
     t0 = time.perf_counter()
     intr = geometry.intrinsics
@@ -142,28 +160,43 @@ def intensity_refine(level: MuLevel, geometry: CarmGeometry, start_pose: np.ndar
         return _objective(level, geometry, grid, poses, scores, points_lps_mm, uv_px, p)
 
     f0, s0, _ = objective(x0[None])
-    best = (float(f0[0]), float(s0[0]), x0)
-    result = RefineResult(x0, float(s0[0]), float(s0[0]), np.inf, 1)
-    while not es.stop():
-        if should_stop is not None:
-            should_stop()
-        population = es.ask()
-        f, s, _ = objective(population)
-        es.tell(f)
-        i = int(np.argmin(f))
-        if f[i] < best[0]:
-            best = (float(f[i]), float(s[i]), population[i].copy())
-        result.convergence.append((es.countevals, best[0], best[1]))
-        if give_up is not None and give_up(es.countevals, best[0]):
-            result.stopped_at = int(es.countevals)
-            break
-        if rejoined is not None and rejoined(best[0], es.mean, es.stds):
-            result.rejoined_at = int(es.countevals)
-            break
-    result.objective_end, result.similarity_end, result.pose = best
-    P = geometry.projection_matrix(result.pose)
-    result.mpde_mm = float(pde_mm(P, points_lps_mm, uv_px, intr.pixel_spacing_mm).mean()) \
-        if len(points_lps_mm) else float("nan")
-    result.evaluations = es.countevals + 1
-    result.seconds = time.perf_counter() - t0
-    return result
+    best = [float(f0[0]), float(s0[0]), x0]
+    convergence, spent, final = [], [time.perf_counter() - t0], []
+
+    def search(give_up, rejoined) -> RefineResult:
+        """Generations until the strategy stops or a stopping rule ends it; the result as it then stands."""
+        t = time.perf_counter()
+        stopped_at = rejoined_at = None
+        while not es.stop():
+            if should_stop is not None:
+                should_stop()
+            population = es.ask()
+            f, s, _ = objective(population)
+            es.tell(f)
+            i = int(np.argmin(f))
+            if f[i] < best[0]:
+                best[:] = [float(f[i]), float(s[i]), population[i].copy()]
+            convergence.append((es.countevals, best[0], best[1]))
+            if give_up is not None and give_up(es.countevals, best[0]):
+                stopped_at = int(es.countevals)
+                break
+            if rejoined is not None and rejoined(best[0], es.mean, es.stds):
+                rejoined_at = int(es.countevals)
+                break
+        spent[0] += time.perf_counter() - t
+        pose = np.array(best[2], float)
+        mpde = float(pde_mm(geometry.projection_matrix(pose), points_lps_mm, uv_px, intr.pixel_spacing_mm).mean()) \
+            if len(points_lps_mm) else float("nan")
+        ended = stopped_at is not None or rejoined_at is not None
+        return RefineResult(pose, float(s0[0]), best[1], mpde, es.countevals + 1, list(convergence), spent[0],
+                            best[0], stopped_at, rejoined_at, resume=resume if ended else None)
+
+    def resume() -> RefineResult:
+        """The search run on from where a stopping rule ended it, without stopping rules, to its end: what a run
+        without them returns, bit for bit (the same strategy state, random stream and best so far); asked again,
+        the same result."""
+        if not final:
+            final.append(search(None, None))
+        return final[0]
+
+    return search(give_up, rejoined)

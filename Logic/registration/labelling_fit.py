@@ -166,7 +166,8 @@ def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = 
 
 def complete(ctx: FitContext, fit: LabellingFit) -> LabellingFit:
     """A labelling whose kept refinement was stopped early (``stopped_at``), refined in full: the same seeded search
-    from the same pose, run to its end, replaces it (the stopped start stays in the record: ``runs``, ``curves``)."""
+    from the same pose, run to its end, replaces it (the stopped start stays in the record: ``runs``, ``curves``).
+    With a ``refinement_memo`` the stopped search is run on from where it stopped, not again from its start."""
     fit.refine = None
     return fit_labelling(ctx, fit)
 

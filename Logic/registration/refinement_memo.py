@@ -16,6 +16,10 @@ What a refinement depends on, its key:
 - the labelling's CT points and clicks, and the start pose (their float64 bytes);
 - its stopping rules: ``early_stop.GiveUpAbove`` and ``early_stop.Rejoins`` are values (the bar; the
   labelling's pose and score the refit may rejoin). A refinement with any other stopping rule is not remembered.
+  One whose rules never stopped it ran as it would have without them (they only end the search), so it also
+  answers the same refinement asked without stopping rules; one a rule stopped is kept resumable
+  (``RefineResult.resume``), and asked for without rules (``labelling_fit.complete``, a display judged again in
+  full) it is run on from where it stopped instead of from its start: the same search, bit for bit.
 
 Nothing else enters ``intensity_refine`` but its cancel check, which only raises. Each answer is a copy of the
 result as it was first returned (``RefineResult`` is later annotated in place: ``agreement`` sets
@@ -39,8 +43,9 @@ _STOPPING_RULES = (GiveUpAbove, Rejoins)
 
 
 def _copy(result: RefineResult) -> RefineResult:
-    """``result`` with its own pose and convergence record."""
-    return dataclasses.replace(result, pose=np.array(result.pose, float), convergence=list(result.convergence))
+    """``result`` with its own pose and convergence record, not resumable (only the memo resumes a search)."""
+    return dataclasses.replace(result, pose=np.array(result.pose, float), convergence=list(result.convergence),
+                               resume=None)
 
 
 def _values(x) -> tuple:
@@ -54,7 +59,9 @@ class RefinementMemo:
 
     def __init__(self):
         self.run = 0                                      # refinements run through it
-        self.recalled = 0                                 # ... and answered from memory
+        self.recalled = 0                                 # ... answered from memory
+        self.resumed = 0                                  # ... run on from where a stopping rule had ended them
+        self._stopped: dict[tuple, RefineResult] = {}     # stopped early, resumable, by their key without rules
         self._results: dict[tuple, RefineResult] = {}
         self._digests: dict[int, tuple[weakref.ref, tuple]] = {}  # id(array) -> (the array, weakly; its digest)
 
@@ -85,13 +92,23 @@ class RefinementMemo:
         if known is not None:
             self.recalled += 1
             return _copy(known)
-        result = run()
-        self.run += 1
+        stopped = self._stopped.pop(key, None) if key is not None else None
+        if stopped is not None:  # the same search, stopped early before: run on from there
+            self.resumed += 1
+            result = stopped.resume()
+        else:
+            result = run()
+            self.run += 1
         if key is not None:
             self._results[key] = _copy(result)
+            plain = key[:-2] + (None, None)   # the same refinement without stopping rules
+            if result.resume is not None:
+                self._stopped.setdefault(plain, result)
+            elif plain != key:  # no rule stopped it: it ran as it would have without them
+                self._results.setdefault(plain, _copy(result))
         return result
 
     def as_dict(self) -> dict:
         """result.json ``stages[levels].refinements``: the labellings' image refinements of the registration so far,
         run and recalled."""
-        return {"run": self.run, "recalled": self.recalled}
+        return {"run": self.run, "recalled": self.recalled, "resumed": self.resumed}

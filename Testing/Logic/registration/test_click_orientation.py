@@ -38,10 +38,12 @@ from carmreg.logic.io.xray import XrayImage, load_xray
 from carmreg.logic.registration import appearance_checks
 from carmreg.logic.registration.appearance_checks import (
     AppearanceChecks,
+    _cannot_lead_stored,
     _database_orientation,
     _rivals_under_either_polarity,
     _shown_without_clicks,
     _upside_down_rivals,
+    _within_reach,
 )
 from carmreg.logic.registration.click_orientation import (
     MIRROR,
@@ -56,7 +58,8 @@ from carmreg.logic.registration.click_orientation import (
     stored_against_turned,
 )
 from carmreg.logic.registration.click_polarity import ClickPolarity
-from carmreg.logic.registration.labelling_fit import FitContext
+from carmreg.logic.registration.image_refine import RefineResult, penalty_bound
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit
 from carmreg.logic.registration.outcome import refused_display
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 
@@ -458,6 +461,43 @@ def test_with_unnamed_clicks_the_upside_down_displays_either_polarity_keeps_are_
     assert _upside_down_rivals(state) == []
 
 
+def _registered_at(similarity: dict, stopped: dict | None = None) -> ClickPolarity:
+    """A ``ClickPolarity`` whose registrations under each polarity end at ``similarity[polarity]`` (a list), those
+    of ``stopped`` ({polarity: [evaluations or None]}) stopped early."""
+    def fit(gc, at):
+        return LabellingFit(["T6", "T7", "T8"], 0, np.zeros((3, 3)), np.zeros((3, 2)),
+                            refine=RefineResult(np.zeros(6), gc, gc, 1.0, 800, stopped_at=at))
+
+    stopped = stopped or {}
+    registered = {p: [fit(g, (stopped.get(p) or [None] * len(gcs))[k]) for k, g in enumerate(gcs)]
+                  for p, gcs in similarity.items()}
+    return ClickPolarity({p: max(g) for p, g in similarity.items()}, {p: True for p in similarity}, registered,
+                         [["T6", "T7", "T8"]], "log-display")
+
+
+def test_a_displays_registrations_stop_once_they_cannot_lead_the_stored_image_and_one_that_may_is_judged_in_full():
+    """``_cannot_lead_stored``: each registration of a display stops once it cannot end
+    ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its own polarity (the bar of
+    ``early_stop.cannot_lead``, the penalty from its landmark pose and the rule's cap on the clicks);
+    ``_within_reach``: a display one of whose full registrations leads by that margin is judged again in full, a
+    stopped one never counts (it cannot get there)."""
+    stored = _registered_at({"bone-dark": [0.30, 0.22], "bone-bright": [0.41]})
+    params = RegistrationParameters()
+    uv = np.array([[10.0, 20.0], [11.0, 40.0], [12.0, 60.0]])
+    state = SimpleNamespace(parameters=params, xray_landmarks=Landmarks2D([None] * 3, uv))
+    pose = np.array([0.0, 1.0, 2.0, 3.0, -4.0, 5.0])
+    penalty = penalty_bound(params.refine_coarse, pose, 3, params.identify.rule.max_landmark_mpde_mm)
+    give_up_for = _cannot_lead_stored(state, stored)
+    assert give_up_for("bone-dark", pose).bar == pytest.approx(1.0 - (0.30 + REFUSE_ORIENTATION_AT_CLICKS_GC) + penalty)
+    assert give_up_for("bone-bright", pose).bar == pytest.approx(1.0 - 0.51 + penalty)
+    at = _registered_at
+    assert not _within_reach(at({"bone-dark": [0.39, 0.10], "bone-bright": [0.50]}), stored)
+    assert _within_reach(at({"bone-dark": [0.41, 0.10], "bone-bright": [0.50]}), stored)  # bone dark leads by 0.11
+    assert not _within_reach(at({"bone-dark": [0.10], "bone-bright": [0.60]}, {"bone-bright": [480]}), stored)
+    assert at({"bone-dark": [0.10]}, {"bone-dark": [480]}).as_dict()["stopped_at_evaluations"] == {"bone-dark": [480]}
+    assert "stopped_at_evaluations" not in stored.as_dict()
+
+
 @pytest.mark.slow
 @pytest.mark.benchmark_case
 def test_with_unnamed_clicks_an_upside_down_display_left_unclear_as_stored_gets_its_polarity_from_the_turn(
@@ -480,6 +520,7 @@ def test_with_unnamed_clicks_an_upside_down_display_left_unclear_as_stored_gets_
     assert scores["turned-180"] >= scores["as-stored"] + REFUSE_ORIENTATION_AT_CLICKS_GC
     assert (a.orientation, a.trusted) == ("turned-180", False) and AppearanceChecks.untrusted_for_good(a)
     assert "--orient-xray turned-180" in refused_display(a)
+    assert "stopped_at_evaluations" not in turned  # within reach: judged again in full, its verdict on full ones
 
 
 def test_without_clicks_the_display_is_the_rival_leading_the_stored_image_under_its_own_polarity():

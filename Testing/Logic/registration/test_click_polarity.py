@@ -108,7 +108,7 @@ def _staged_polarity_at_clicks(monkeypatch, staged: dict, first: list, levels: l
     ``_staged_plan(first, levels)``; returns the evidence and the shifts registered, in order."""
     registered = []
 
-    def fit_labelling(ctx, fit):
+    def fit_labelling(ctx, fit, give_up=None):
         gc, mpde_mm = staged[ctx][fit.shift]
         registered.append(fit.shift)
         done = _fit(fit.labels, gc, mpde_mm)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from carmreg.logic.drr.cpu import render_line_integrals
+from carmreg.logic.geometry.camera import project
 from carmreg.logic.registration.early_stop import (
     REJOIN_DISTANCE,
     REJOIN_GAIN,
@@ -14,12 +15,20 @@ from carmreg.logic.registration.early_stop import (
     SLACK,
     STILL_TO_COME,
     allowance,
+    cannot_lead,
     give_up_above,
     lower_bound,
     rejoins,
 )
 from carmreg.logic.registration.fine import FineParameters, FineResult
-from carmreg.logic.registration.image_refine import RefineResult, intensity_refine
+from carmreg.logic.registration.image_refine import (
+    RefineParameters,
+    RefineResult,
+    _objective,
+    intensity_refine,
+    penalty_bound,
+    refine_grid,
+)
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
@@ -27,6 +36,7 @@ from carmreg.logic.registration.labelling_fit import (
     refit_from,
 )
 from carmreg.logic.registration.levels import _rival_score, _settle
+from carmreg.logic.similarity.metrics import prepare
 
 
 def test_the_allowance_is_twice_the_largest_improvement_seen_after_that_many_evaluations_plus_the_slack():
@@ -133,3 +143,31 @@ def test_a_refit_from_a_tilted_pose_stops_once_back_at_the_registered_pose_and_t
     assert cut.refine is registered and cut.stopped_at is None    # still the registration, not "hopeless"
     elsewhere = refit_from(ctx, fit.copy(), fit.pose - tilt, stop_rejoined=True)  # settles in another basin
     assert elsewhere.rejoined == [] and elsewhere.curves[-1][-1][0] > 800 and elsewhere.runs[-1] > 0.01
+
+
+def test_a_refinement_that_must_lead_by_a_margin_stops_once_its_similarity_cannot_get_there(tiny_db_inputs):
+    """``cannot_lead`` and ``image_refine.penalty_bound``: at any pose inside a refinement's box where the clicks'
+    mPDE is within the cap, ``1 - similarity >= f - penalty_bound``, so a refinement whose ``f`` cannot end below
+    ``1 - (reference + margin) + penalty`` cannot end that far ahead of the reference."""
+    level, geometry, _, _, _ = tiny_db_inputs
+    p = RefineParameters(mu_spacing_mm=4.0, detector_pixel_mm=4.0)
+    start = np.array([5.0, 2.0, -3.0, 4.0, -6.0, 2.0])
+    bound = penalty_bound(p, start, 3, 4.0)
+    rotations = (np.abs(start[3:]) + np.asarray(p.bounds[3:])) / 10.0
+    assert bound == pytest.approx(p.landmark_weight * 3 * (4.0 / p.click_sd_mm) ** 2
+                                  + p.rotation_weight * np.sum(rotations ** 2))
+    assert penalty_bound(p, start, 0, 4.0) == pytest.approx(p.rotation_weight * np.sum(rotations ** 2))
+    image = render_line_integrals(level, geometry, start)
+    grid = refine_grid(geometry.intrinsics, p, image, np.ones(image.shape, bool))
+    scores = prepare("gc", grid.image, grid.mask, dtype=np.float64)
+    ijk = np.array([[8.0, 8.0, 5.0], [8.0, 8.0, 8.0], [8.0, 8.0, 11.0]])
+    points = ijk @ level.ijk_to_lps[:3, :3].T + level.ijk_to_lps[:3, 3]
+    uv = project(geometry.projection_matrix(start), points)
+    rng = np.random.default_rng(3)
+    poses = start + rng.uniform(-1.0, 1.0, (64, 6)) * np.asarray(p.bounds) * np.array([0.05, 0.1, 0.1, 1, 1, 1])
+    f, similarity, mpde = _objective(level, geometry, grid, poses, scores, points, uv, p)
+    inside = mpde <= 4.0
+    assert inside.sum() >= 10 and np.all((1.0 - similarity - (f - bound))[inside] >= -1e-12)
+    give_up = cannot_lead(0.40, 0.10, bound)
+    assert give_up.bar == pytest.approx(1.0 - 0.50 + bound)
+    assert give_up(480, give_up.bar + allowance(480) + 1e-9) and not give_up(480, give_up.bar + allowance(480) - 1e-9)

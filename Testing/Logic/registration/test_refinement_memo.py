@@ -110,3 +110,27 @@ def test_stopping_rules_are_values():
     pose, steps = np.array([1.0, 2.0, 3.0, 0.0, 0.5, 0.0]), np.array([20.0, 4.0, 4.0, 4.0, 5.0, 5.0])
     assert rejoins(pose, 0.4, steps) == rejoins(pose.copy(), 0.4, tuple(steps))
     assert rejoins(pose, 0.4, steps) != rejoins(pose + 1e-9, 0.4, steps)
+
+
+def test_a_refinement_its_rules_never_stopped_answers_the_same_one_asked_without_them(tiny_db_inputs, counted):
+    """A refinement whose stopping rules never ended it ran as it would have without them: asked again without
+    rules it is recalled. One a rule stopped, asked for without rules, is run on from where it stopped
+    (``RefineResult.resume``): the same search to its end, bit for bit what a fresh run without rules gives."""
+    memo = RefinementMemo()
+    ctx = _context(tiny_db_inputs, memo)
+    ruled = refit_from(ctx, _fit(), START, give_up=give_up_above(0.3))  # 160 evaluations: nothing stops before 320
+    assert ruled.stopped_at is None
+    plain = refit_from(ctx, _fit(), START)
+    assert counted[0] == 1 and memo.recalled == 1 and np.array_equal(plain.refine.pose, ruled.refine.pose)
+    longer = dataclasses.replace(ctx, refine=dataclasses.replace(ctx.refine, max_evaluations=400))
+    stopped = refit_from(longer, _fit(), START, give_up=give_up_above(-5.0))  # hopeless from the first allowance
+    assert stopped.stopped_at == 320 and stopped.refine.evaluations == 321
+    full = refit_from(longer, _fit(), START)
+    assert counted[0] == 2 and memo.resumed == 1 and full.stopped_at is None
+    fresh = refit_from(dataclasses.replace(longer, refinements=None), _fit(), START)
+    assert counted[0] == 3 and full.refine.evaluations == fresh.refine.evaluations > 321
+    assert np.array_equal(full.refine.pose, fresh.refine.pose) and full.refine.convergence == fresh.refine.convergence
+    assert (full.refine.objective_end, full.refine.similarity_end) == \
+        (fresh.refine.objective_end, fresh.refine.similarity_end)
+    assert memo.as_dict() == {"run": 2, "recalled": 1, "resumed": 1}
+    assert refit_from(longer, _fit(), START).refine.convergence == fresh.refine.convergence  # now recalled
