@@ -110,5 +110,5 @@ class RefinementMemo:
 
     def as_dict(self) -> dict:
         """result.json ``stages[levels].refinements``: the labellings' image refinements of the registration so far,
-        run and recalled."""
+        run, recalled and resumed."""
         return {"run": self.run, "recalled": self.recalled, "resumed": self.resumed}
