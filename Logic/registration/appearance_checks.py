@@ -148,26 +148,20 @@ def _upside_down_rivals(state: RegistrationState) -> list[str]:
     return [o for o in _rivals_under_either_polarity(state) if o in UPSIDE_DOWN]
 
 
-def _stored_best(stored: ClickPolarity, polarity: str) -> float:
-    """The stored image's best GC at the clicks under ``polarity`` (what ``stored_against_turned`` compares a display
-    with)."""
-    return max(f.similarity for f in stored.registered[polarity])
-
-
 def _cannot_lead_stored(state: RegistrationState, stored: ClickPolarity):
     """``give_up_for(polarity, landmark_pose)`` for a display's registrations (``polarity_at_clicks``): each stops
-    once it cannot end ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity with
-    the clicks within the rule's cap (``early_stop.cannot_lead``; ``image_refine.penalty_bound`` from its start, the
-    landmark fit's pose), the only way the display can be taken (``stored_against_turned``,
-    ``Appearance.set_orientation_at_clicks``). Seen, stop 62: case 425's large patient, correctly displayed, its
-    polarity unclear at the clicks: 22 registrations on three displays, 12 of its 33 s, every one below 0.22 against
-    the stored image's 0.38."""
+    once it cannot end ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity
+    (``ClickPolarity.scores``) with the clicks within the rule's cap (``early_stop.cannot_lead``;
+    ``image_refine.penalty_bound`` from its start, the landmark fit's pose), the only way the display can be taken
+    (``stored_against_turned``, ``Appearance.set_orientation_at_clicks``). Seen, stop 62: case 425's large
+    patient, correctly displayed, its polarity unclear at the clicks: 22 registrations on three displays, 12 of its
+    33 s, every one below 0.22 against the stored image's 0.38."""
     p = state.parameters
     n_clicks, cap_mm = len(state.xray_landmarks.uv_px), p.identify.rule.max_landmark_mpde_mm
 
     def give_up_for(polarity: str, landmark_pose: np.ndarray):
         penalty = penalty_bound(p.refine_coarse, landmark_pose, n_clicks, cap_mm)
-        return cannot_lead(_stored_best(stored, polarity), REFUSE_ORIENTATION_AT_CLICKS_GC, penalty)
+        return cannot_lead(stored.scores[polarity], REFUSE_ORIENTATION_AT_CLICKS_GC, penalty)
 
     return give_up_for
 
@@ -177,7 +171,7 @@ def _within_reach(turned: ClickPolarity, stored: ClickPolarity) -> bool:
     in full and ended ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity (a
     stopped one cannot). It is then judged again in full, as before the stops, so that its verdict is that of full
     registrations; those that ran in full are recalled (``refinement_memo``)."""
-    return any(f.stopped_at is None and f.similarity >= _stored_best(stored, polarity) + REFUSE_ORIENTATION_AT_CLICKS_GC
+    return any(f.stopped_at is None and f.similarity >= stored.scores[polarity] + REFUSE_ORIENTATION_AT_CLICKS_GC
                for polarity, fits in turned.registered.items() for f in fits)
 
 
