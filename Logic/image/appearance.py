@@ -303,6 +303,12 @@ class Appearance:
         """A level answer may be confident (``trusted_appearance``)."""
         return trusted_appearance(self.clear, self.orientation, self.orientation_clear)
 
+    @property
+    def lent_by_display(self) -> bool:
+        """The polarity in use was lent by a turned or mirrored display's clear verdict at the clicks, the display
+        not taken (``leaned_on_display``: never clear)."""
+        return not self.clear and ON_TURNED_AT_CLICKS in self.decided_by and self.orientation == "as-stored"
+
     def as_second_opinion(self, first: Appearance) -> None:
         """This verdict, found on the image without its shading (``REFINED_WITHOUT_SHADING``, or
         ``REFINED_AT_CLICKS_WITHOUT_SHADING``), used instead of ``first`` (the image as it is: unclear, or clear by
@@ -314,6 +320,19 @@ class Appearance:
                      f"mm (GC gap {self.clarity_gc:.3f} there; as it is, the image {leaned}): not clear, so no "
                      "level answer rests on it alone; set the "
                      "polarity by hand if the overlay looks inverted")
+
+    def leaned_on_display(self, first: Appearance, orientation: str, ahead_gc: float) -> None:
+        """This verdict, clear at the clicks on the image shown ``orientation`` (the clicks turned with it), used
+        instead of ``first`` (unclear at the clicks as stored, leaning the other polarity): on that display the
+        image agrees with the CT ``ahead_gc`` more than as stored under either polarity, too little to take the
+        display (``REFUSE_ORIENTATION_AT_CLICKS_GC``; ``appearance_checks._leaning``). Never clear: the display
+        is neither taken nor ruled out, so no level answer rests on it alone; only the levels' winner, judged at the
+        clicks too, can make it clear and judge the display again (``AppearanceChecks.with_winner``)."""
+        self.clear = False
+        self.note = (f"{self.polarity}, found only on the image {orientation.replace('-', ' ')} (GC gap "
+                     f"{self.clarity_gc:.3f} there, {ahead_gc:.3f} ahead of the image as stored, where it was unclear "
+                     f"and taken {first.polarity}): not clear, so no level answer rests on it alone; check the "
+                     "display's orientation, and set the polarity by hand if the overlay looks inverted")
 
     def not_confirmed_by(self, second: Appearance) -> None:
         """This clear verdict (no clicks, the image as it is, clear by less than ``CHECKED_REFINED_GC``) no longer

@@ -166,13 +166,29 @@ def _cannot_lead_stored(state: RegistrationState, stored: ClickPolarity):
     return give_up_for
 
 
-def _within_reach(turned: ClickPolarity, stored: ClickPolarity) -> bool:
-    """Whether a display judged with ``_cannot_lead_stored``'s stops may still be taken: one of its registrations ran
-    in full and ended ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the stored image's best under its polarity (a
-    stopped one cannot). It is then judged again in full, as before the stops, so that its verdict is that of full
-    registrations; those that ran in full are recalled (``refinement_memo``)."""
-    return any(f.stopped_at is None and f.similarity >= stored.scores[polarity] + REFUSE_ORIENTATION_AT_CLICKS_GC
+def _within_reach(turned: ClickPolarity, stored: ClickPolarity, in_use: str) -> bool:
+    """Whether a display judged with ``_cannot_lead_stored``'s stops may still be taken, or tell the polarity
+    (``_leaning``): one of its registrations ran in full and ended ``REFUSE_ORIENTATION_AT_CLICKS_GC`` ahead of the
+    stored image's best under its polarity, or, under the polarity not in use (``in_use``), ahead of the stored
+    image's best under either (a stopped one counts for neither). It is then judged again in full, as before the
+    stops, so that its verdict is that of full registrations; those that ran in full are recalled
+    (``refinement_memo``)."""
+    best_stored = max(stored.scores.values())
+    return any(f.stopped_at is None and (f.similarity >= stored.scores[polarity] + REFUSE_ORIENTATION_AT_CLICKS_GC
+                                         or (polarity != in_use and f.similarity > best_stored))
                for polarity, fits in turned.registered.items() for f in fits)
+
+
+def _leaning(again: Appearance, turned: ClickPolarity, stored: ClickPolarity, in_use: str) -> float | None:
+    """How far a display's clear polarity verdict (``again``, from ``turned``'s registrations) leads the stored image,
+    when it names the polarity not in use and its best registration is ahead of the stored image's best under either
+    polarity (``stored``): the display then explains the image better than the stored image does, whatever the
+    polarity, so its verdict is the better evidence of the polarity, a property of the pixels' values that no turn of
+    the display changes. None otherwise. Seen, stop 63: report case 441's mirrored display (bone dark), unclear at
+    the clicks as stored and taken bone bright (bone dark 0.387 off the clicks, bone bright 0.177 on them); on the
+    mirror bone dark 0.426 against 0.011, 0.039 ahead of the stored image, under the 0.10 that takes a display."""
+    ahead = turned.scores[again.polarity] - max(stored.scores.values())
+    return float(ahead) if again.clear and again.polarity != in_use and ahead > 0 else None
 
 
 def _at_clicks_key(orientation: str) -> str:
@@ -337,51 +353,66 @@ class AppearanceChecks:
         mirrored display shows no aligned spine as stored under either polarity, and neither does an upside-down one
         with unnamed clicks (the clicks fit either way up, the CT only head up): the verdict as stored stays unclear,
         sometimes for the wrong polarity (stop 62, tune half 288-298 and cases 502-508, unnamed clicks: 6 of 20
-        flipped or half-turned displays unclear, 2 of them wrong, where the image turned back tells it clearly)."""
+        flipped or half-turned displays unclear, 2 of them wrong, where the image turned back tells it clearly).
+        When no display is taken but one or more gave a clear verdict for the polarity not in use from a registration
+        ahead of the stored image's best under either polarity (``_leaning``), the one furthest ahead lends its
+        polarity, never clear (``Appearance.leaned_on_display``); the display itself is not taken."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         if cp is None or a.clear or p.polarity in POLARITIES:
             return
+        leanings = []
         for o in [MIRROR, *_upside_down_rivals(state)]:
-            if self._polarity_on_display(state, gc_by_storage, unshaded, o):
+            shown, leaning = self._polarity_on_display(state, gc_by_storage, unshaded, o)
+            if shown:
                 return
+            if leaning is not None:
+                leanings.append(leaning)
+        if leanings:
+            ahead, again, o = max(leanings, key=lambda lean: lean[0])
+            again.leaned_on_display(a, o, ahead)
+            again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))})
+            self._use_appearance(state, again, gc_by_storage)
 
     def _polarity_on_display(self, state: RegistrationState, gc_by_storage: dict, unshaded: ClickPolarity | None,
-                             orientation: str) -> bool:
+                             orientation: str) -> tuple[bool, tuple | None]:
         """The polarity judged at the clicks on ``orientation`` of the image, the clicks turned with it. Taken only
         when that verdict is clear and the display then leads the stored image under that polarity by
         ``REFUSE_ORIENTATION_AT_CLICKS_GC`` with the clicks fitted (``stored_against_turned``,
         ``Appearance.set_orientation_at_clicks``): the display is so shown, the image refused, no level answer
-        confident; returns whether it was. Otherwise the appearance stays as it was, with the display's evidence
-        recorded (``scores["on_mirror"]``, ``scores["on_<orientation>"]``). ``unshaded``: the second opinion's
+        confident; returns (whether it was, the display's ``_leaning`` as (lead, verdict, orientation) or None).
+        Otherwise the appearance stays as it was, with the display's evidence recorded (``scores["on_mirror"]``,
+        ``scores["on_<orientation>"]``). ``unshaded``: the second opinion's
         evidence at the clicks when its verdict is clear (``_polarity_at_clicks_without_shading``); the display is
         then judged without the shading too and compared with it: judged with the shading, a large patient's
         shading can fit the mirror better than the faint bone fits as stored (seen: report case 125, bone bright,
         names one level off: unclear at the clicks, bone bright without the shading by 0.39, then taken bone dark
         and mirrored on the mirror by 0.27). The display's registrations stop once they cannot lead the stored image
-        by that margin (``_cannot_lead_stored``); a display one of whose registrations still does is judged again in
-        full (``_within_reach``), so a display is taken on full registrations only."""
+        by that margin (``_cannot_lead_stored``); a display one of whose registrations still does, or may lend its
+        polarity, is judged again in full (``_within_reach``), so a display is taken, or lends, on full registrations
+        only."""
         a, p, xray = state.appearance, state.parameters, state.xray
         stored = state.click_polarity if unshaded is None else unshaded
         where = f"on the image {orientation.replace('-', ' ')}" + ("" if unshaded is None else ", without its shading")
         clicks = turned_clicks(state.xray_landmarks, orientation, xray.size_px)
         change = functools.partial(self._on_display, orientation=orientation, without_shading=unshaded is not None)
         turned = self._leaders_judged_again(state, change, clicks, where, _cannot_lead_stored(state, stored))
-        if _within_reach(turned, stored):
+        if _within_reach(turned, stored, a.polarity):
             turned = self._leaders_judged_again(state, change, clicks, where)
         a.scores[_at_clicks_key(orientation)] = turned.as_dict()
         again = self._polarity_again(state, turned.scores,
                                      refined_on_at_clicks(orientation, WITHOUT_SHADING_MM if unshaded else 0.0),
                                      turned.fits)
         if not again.clear:
-            return False
+            return False, None
         again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))})
         self._database_verdicts(state, again, gc_by_storage)
         again.set_orientation_at_clicks(stored_against_turned(stored, turned, orientation, again.polarity,
                                                               p.identify.rule).as_dict())
         if again.orientation != orientation:
-            return False
+            ahead = _leaning(again, turned, stored, a.polarity)
+            return False, None if ahead is None else (ahead, again, orientation)
         self._use_appearance(state, again, gc_by_storage)
-        return True
+        return True, None
 
     def _orientation_under_other_polarity(self, state: RegistrationState, gc_by_storage: dict,
                                           unshaded: ClickPolarity | None) -> None:
@@ -625,10 +656,13 @@ class AppearanceChecks:
         better with the image (``ClickPolarity.prefers_other``: the polarity was taken where the clicks fitted, on
         other labellings). Seen, stop 46: fresh report case 271's flat-panel DICOM without a sign, stored bone
         bright, unnamed clicks on T8-T10: judged on T3-T8, bone dark was taken (its registration kept the clicks at
-        GC 0.11, bone bright's did not, at 0.29); T6-T8 then won, GC 0.29 bone bright against -0.07 bone dark."""
+        GC 0.11, bone bright's did not, at 0.29); T6-T8 then won, GC 0.29 bone bright against -0.07 bone dark.
+        Never for a polarity a display lent (``Appearance.lent_by_display``): the other polarity is the stored
+        image's unclear verdict, which trailed clearly on a display that explained the image better (stop 64: report
+        case 441's mirrored display, the second contest 17 s more, not taken)."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         if (a is None or cp is None or a.clear or p.polarity in POLARITIES or state.xray.polarity_stated
-                or a.orientation != "as-stored" or explains_the_image(winner, p.identify.rule)):
+                or a.orientation != "as-stored" or a.lent_by_display or explains_the_image(winner, p.identify.rule)):
             return False
         if not _judged(winner, cp.labels):
             return True

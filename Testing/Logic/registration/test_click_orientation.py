@@ -40,6 +40,7 @@ from carmreg.logic.registration.appearance_checks import (
     AppearanceChecks,
     _cannot_lead_stored,
     _database_orientation,
+    _leaning,
     _rivals_under_either_polarity,
     _shown_without_clicks,
     _upside_down_rivals,
@@ -289,17 +290,17 @@ def _benchmark_scene(case: int, folder: Path, variant_name: str = "ii-dark-mirro
 
 
 def _spatial_stage(case: int, folder: Path, variant_name: str, drr_cache_dir: str, second_ct: bool = False,
-                   unnamed_clicks: bool = False):
+                   unnamed_clicks: bool = False, with_logic: bool = False):
     """(state after the spatial stage, truth): the benchmark's scene ``case`` as ``variant_name``
     (``_benchmark_scene``) registered without clicks (``unnamed_clicks``: with the scene's clicks, unnamed) up to
-    where the appearance is decided."""
+    where the appearance is decided; ``with_logic``: (the logic that ran it, state, truth)."""
     ct, centroids, xray, truth = _benchmark_scene(case, folder, variant_name, second_ct)
     uv = np.asarray(truth["clicks_uv_px"], float) if unnamed_clicks else np.zeros((0, 2))
     logic = CarmRegLogic()
     state = logic.prepare(ct, centroids, xray, Landmarks2D([None] * len(uv), uv),
                           RegistrationParameters(cache_dir=drr_cache_dir))
     logic.run_through(state, "spatial")
-    return state, truth
+    return (logic, state, truth) if with_logic else (state, truth)
 
 
 def _appearance_found(mirrored_display, clicks: Landmarks2D):
@@ -490,12 +491,44 @@ def test_a_displays_registrations_stop_once_they_cannot_lead_the_stored_image_an
     give_up_for = _cannot_lead_stored(state, stored)
     assert give_up_for("bone-dark", pose).bar == pytest.approx(1.0 - (0.30 + REFUSE_ORIENTATION_AT_CLICKS_GC) + penalty)
     assert give_up_for("bone-bright", pose).bar == pytest.approx(1.0 - 0.51 + penalty)
-    at = _registered_at
-    assert not _within_reach(at({"bone-dark": [0.39, 0.10], "bone-bright": [0.50]}), stored)
-    assert _within_reach(at({"bone-dark": [0.41, 0.10], "bone-bright": [0.50]}), stored)  # bone dark leads by 0.11
-    assert not _within_reach(at({"bone-dark": [0.10], "bone-bright": [0.60]}, {"bone-bright": [480]}), stored)
+    at, bright = _registered_at, "bone-bright"  # bone bright in use: a display lends bone dark only
+    assert not _within_reach(at({"bone-dark": [0.39, 0.10], "bone-bright": [0.50]}), stored, bright)
+    assert _within_reach(at({"bone-dark": [0.41, 0.10], "bone-bright": [0.50]}), stored, bright)  # leads by 0.11
+    assert not _within_reach(at({"bone-dark": [0.10], "bone-bright": [0.60]}, {"bone-bright": [480]}), stored, bright)
     assert at({"bone-dark": [0.10]}, {"bone-dark": [480]}).as_dict()["stopped_at_evaluations"] == {"bone-dark": [480]}
     assert "stopped_at_evaluations" not in stored.as_dict()
+
+
+def test_a_display_ahead_of_the_stored_image_under_either_polarity_lends_its_clear_polarity_never_clear():
+    """``_leaning`` (stop 64, report case 441's mirrored display: unclear as stored, bone bright taken; on the
+    mirror bone dark clearly, 0.039 ahead of the stored image's best, under the 0.10 that takes a display): a
+    display's clear verdict for the polarity not in use, from a registration ahead of the stored image's best under
+    either polarity, lends that polarity, never clear (only the levels' winner, judged at the clicks too, can make
+    it clear); each part decides. ``_within_reach``: such a display is judged in full first (a stopped registration
+    never counts)."""
+    stored = _registered_at({"bone-dark": [0.387, 0.375], "bone-bright": [0.177]})
+    mirror = _registered_at({"bone-dark": [0.426, 0.388], "bone-bright": [0.011]})
+    dark = SimpleNamespace(clear=True, polarity="bone-dark")
+    bright = SimpleNamespace(clear=True, polarity="bone-bright")
+    assert _leaning(dark, mirror, stored, "bone-bright") == pytest.approx(0.426 - 0.387)
+    assert _leaning(dark, mirror, stored, "bone-dark") is None  # the polarity in use already
+    assert _leaning(SimpleNamespace(clear=False, polarity="bone-dark"), mirror, stored, "bone-bright") is None
+    behind = _registered_at({"bone-dark": [0.380], "bone-bright": [0.011]})
+    assert _leaning(dark, behind, stored, "bone-bright") is None  # not ahead of the stored image's best (0.387)
+    assert _leaning(bright, _registered_at({"bone-dark": [0.1], "bone-bright": [0.39]}), stored, "bone-dark") > 0
+    assert _within_reach(mirror, stored, "bone-bright") and not _within_reach(mirror, stored, "bone-dark")
+    assert not _within_reach(_registered_at({"bone-dark": [0.426]}, {"bone-dark": [480]}), stored, "bone-bright")
+    first = _appearance()
+    first.clear, first.polarity = False, "bone-bright"
+    lent = decide_polarity({"bone-dark": 0.34, "bone-bright": 0.31}, {"bone-dark": 0.426, "bone-bright": 0.011},
+                           "auto", True, "PNG", refined_by=refined_on_at_clicks(MIRROR),
+                           fits={"bone-dark": True, "bone-bright": True})
+    lent.set_orientation({"as-stored": 0.31, MIRROR: 0.34})
+    assert lent.clear and not lent.lent_by_display  # clear: not lent
+    lent.leaned_on_display(first, MIRROR, 0.039)
+    assert (lent.polarity, lent.clear, lent.trusted, lent.lent_by_display) == ("bone-dark", False, False, True)
+    assert "found only on the image mirrored left right" in lent.note and "taken bone-bright" in lent.note
+    assert not AppearanceChecks.untrusted_for_good(lent)  # a winner judged at the clicks may still settle it
 
 
 @pytest.mark.slow
@@ -521,6 +554,34 @@ def test_with_unnamed_clicks_an_upside_down_display_left_unclear_as_stored_gets_
     assert (a.orientation, a.trusted) == ("turned-180", False) and AppearanceChecks.untrusted_for_good(a)
     assert "--orient-xray turned-180" in refused_display(a)
     assert "stopped_at_evaluations" not in turned  # within reach: judged again in full, its verdict on full ones
+
+
+@pytest.mark.slow
+@pytest.mark.benchmark_case
+def test_with_unnamed_clicks_a_mirrored_display_ahead_by_less_than_the_refusal_lends_its_polarity(
+        sample_case_dir, tmp_path_factory, drr_cache_dir):
+    """The appearance benchmark's report case 441 (chest CT; stop 63's one polarity miss, no threshold chosen on
+    it): its intensifier PNG, bone dark, shown mirrored, three unnamed clicks. As stored bone dark leads off the
+    clicks and bone bright keeps them, and the second opinion cannot tell: unclear, bone bright taken. On the mirror
+    bone dark leads clearly and the mirror is ahead of the stored image under either polarity, by less than the
+    0.10 that takes a display: the mirror lends its polarity, never clear. The levels contest then runs on the
+    stored image as bone dark, with no contest under bone bright (``worth_other_polarity``): its winner, judged at
+    the clicks too, does not make the appearance trusted, and the answer is ambiguous."""
+    logic, state, truth = _spatial_stage(441, tmp_path_factory.mktemp("mirror-lends"), "ii-dark-mirrored-png",
+                                         drr_cache_dir, unnamed_clicks=True, with_logic=True)
+    assert truth["mirrored"] and not truth["bone_bright_displayed"]
+    a = state.appearance
+    as_stored, mirror = a.scores["at_clicks"], a.scores["on_mirror"]
+    assert not verdict_at_clicks(as_stored["scores"], as_stored["fits"])[2]  # the stored image alone: unclear
+    assert verdict_at_clicks(mirror["scores"], mirror["fits"])[::2] == ("bone-dark", True)
+    ahead = mirror["scores"]["bone-dark"] - max(as_stored["scores"].values())
+    assert 0 < ahead < REFUSE_ORIENTATION_AT_CLICKS_GC
+    assert (a.polarity, a.clear, a.orientation) == ("bone-dark", False, "as-stored") and a.lent_by_display
+    assert a.decided_by == f"image ({REFINED_ON_MIRROR})" and "found only on the image mirrored" in a.note
+    assert "stopped_at_evaluations" not in mirror  # it lends on full registrations
+    logic.run_stage(state, "levels")
+    assert state.identification.status == "ambiguous" and not state.appearance.trusted
+    assert "contest_under_other_polarity" not in state.appearance.scores
 
 
 def test_without_clicks_the_display_is_the_rival_leading_the_stored_image_under_its_own_polarity():

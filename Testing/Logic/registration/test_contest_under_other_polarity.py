@@ -1,7 +1,8 @@
 """The levels contest run again under the other polarity (``AppearanceChecks.contest_under_other_polarity``): when
 the polarity stayed unclear at the clicks and the contest's winner, not among the labellings it was judged on,
 explains the image poorly, on a case of the appearance benchmark whose polarity had been judged on wrong labellings
-only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing), and on
+only (report case 205, chest, T10-T12 clicked, the 10th most plausible of 11 labellings by click spacing; since
+stop 64 a flipped display lends it its polarity first, and the same answer comes without the second contest), and on
 one where it must change nothing but its record (report case 201's mirrored display), and one where it could never
 be taken and is not run (report case 149's large patient, stop 59). A winner the polarity was
 judged on gets no second contest (``test_polarity_at_clicks_without_shading``, case 92), unless the polarity taken
@@ -15,7 +16,12 @@ import pytest
 from appearance_cases import appearance_case_registrar
 
 from carmreg.logic.errors import CancelledError
-from carmreg.logic.image.appearance import REFINED_AT_CLICKS, REFINED_AT_CLICKS_WITHOUT_SHADING
+from carmreg.logic.image.appearance import (
+    REFINED_AT_CLICKS,
+    REFINED_AT_CLICKS_WITHOUT_SHADING,
+    refined_on_at_clicks,
+)
+from carmreg.logic.registration import appearance_checks
 from carmreg.logic.registration.appearance_checks import AppearanceChecks
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.image_refine import RefineResult
@@ -61,14 +67,17 @@ def _levels_watching_the_second_contest(logic, state, cancel: bool) -> dict:
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
-def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under_the_other(clicked_case):
+def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under_the_other(clicked_case, monkeypatch):
     """Case 205's intensifier image, bone dark, log storage, 16-bit PNG, unnamed clicks: judged at the clicks on
-    T4-T6 ... T8-T10 (all wrong) it is taken bone bright, unclear; the contest on the inverted image is won by T1-T3
-    under the image floor (stop 41: ambiguous, the polarity wrong). Run again as bone dark, T10-T12 wins and,
+    T4-T6 ... T8-T10 (all wrong) it is taken bone bright, unclear, when no turned display lends its polarity (since
+    stop 64 the flipped display does, ``test_a_polarity_lent_by_a_display_is_confirmed_by_the_levels_winner``;
+    turned off here to reach the contest under the other polarity); the contest on the inverted image is won by
+    T1-T3 under the image floor (stop 41: ambiguous, the polarity wrong). Run again as bone dark, T10-T12 wins and,
     judged at the clicks too, confirms bone dark: the answer is right and confident, and both contests are
     recorded. A cancel inside the second contest first leaves the appearance, its evidence, the warnings and the
     converted X-ray as they were when it started (``_all_or_nothing``), and the stage run again then gives that
     answer."""
+    monkeypatch.setattr(appearance_checks, "_leaning", lambda *args: None)
     logic, state, truth = clicked_case(205, "ii-dark-log-png")
     a = state.appearance
     assert (a.polarity, a.clear, a.orientation) == ("bone-bright", False, "as-stored")
@@ -89,6 +98,25 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
     assert list(ident.winner.labels) == list(truth["clicked"]) and ident.status == "confident"
     assert ident.winner.similarity > 0.6
     assert not any(w.startswith("X-ray polarity:") for w in state.warnings)
+
+
+@pytest.mark.slow
+@pytest.mark.benchmark_case
+def test_a_polarity_lent_by_a_display_is_confirmed_by_the_levels_winner(clicked_case):
+    """The same case 205 as it runs (stop 64): unclear as stored, bone bright taken; judged on the image flipped
+    up-down (unnamed clicks), bone dark leads clearly there, ahead of the stored image under either polarity but by
+    less than the 0.10 that takes a display: the flip lends bone dark, never clear (``_leaning``). The contest on
+    the stored image as bone dark is won by T10-T12, which, judged at the clicks too, makes the polarity clear and
+    the display as stored: right and confident, with no contest under bone bright."""
+    logic, state, truth = clicked_case(205, "ii-dark-log-png")
+    a = state.appearance
+    assert (a.polarity, a.clear, a.orientation, a.lent_by_display) == ("bone-dark", False, "as-stored", True)
+    assert a.decided_by == f"image ({refined_on_at_clicks('flipped-up-down')})"
+    logic.run_stage(state, "levels")
+    a, ident = state.appearance, state.identification
+    assert (a.polarity, a.clear, a.trusted, a.lent_by_display) == ("bone-dark", True, True, False)
+    assert list(ident.winner.labels) == list(truth["clicked"]) and ident.status == "confident"
+    assert "contest_under_other_polarity" not in a.scores
 
 
 @pytest.mark.slow
