@@ -186,7 +186,7 @@ def test_a_judged_winner_gets_the_second_contest_when_the_polarity_taken_at_the_
     registrations kept the clicks, bone bright's did not); T6-T8 won the contest, GC 0.36 under the floor, and at
     T6-T8 bone bright had agreed better (0.29 against -0.07): the contest runs again as bone bright. Not when the
     winner agreed better under the polarity taken, nor when that polarity came from other evidence (case 92's, the
-    image without its shading), nor when the winner explains the image."""
+    image without its shading), nor when the winner explains the image, nor when a display lent the polarity."""
     judged = [["T4", "T5", "T6"], ["T3", "T4", "T5"], ["T5", "T6", "T7"], ["T6", "T7", "T8"]]
     gc = {"bone-dark": [0.109, 0.057, 0.081, -0.072], "bone-bright": [0.212, 0.218, 0.287, 0.289]}
     mpde = {"bone-dark": [2.84, 3.90, 2.89, 1.70], "bone-bright": [4.56, 6.21, 5.65, 3.88]}
@@ -194,7 +194,7 @@ def test_a_judged_winner_gets_the_second_contest_when_the_polarity_taken_at_the_
                        {p: [_fit(lb, g, m) for lb, g, m in zip(judged, gc[p], mpde[p], strict=True)] for p in gc},
                        judged, "log-display")
     appearance = SimpleNamespace(clear=False, orientation="as-stored", polarity="bone-dark",
-                                 decided_by=f"image ({REFINED_AT_CLICKS})")
+                                 decided_by=f"image ({REFINED_AT_CLICKS})", lent_by_display=False)
     state = SimpleNamespace(appearance=appearance, click_polarity=cp, xray=SimpleNamespace(polarity_stated=False),
                             parameters=SimpleNamespace(polarity="auto", identify=IdentifyParameters()))
     winner = _fit(["T6", "T7", "T8"], 0.364, 5.44)
@@ -207,3 +207,5 @@ def test_a_judged_winner_gets_the_second_contest_when_the_polarity_taken_at_the_
     appearance.decided_by = f"image ({REFINED_AT_CLICKS})"
     assert not AppearanceChecks.worth_other_polarity(state, _fit(["T6", "T7", "T8"], 0.45, 1.2))  # explains it
     assert AppearanceChecks.worth_other_polarity(state, _fit(["T8", "T9", "T10"], 0.30, 1.2))  # not judged: as before
+    appearance.lent_by_display = True  # stop 64: a polarity a display lent gets no contest under the other
+    assert not AppearanceChecks.worth_other_polarity(state, _fit(["T8", "T9", "T10"], 0.30, 1.2))
