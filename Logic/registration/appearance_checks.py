@@ -173,10 +173,14 @@ def _within_reach(turned: ClickPolarity, stored: ClickPolarity, in_use: str) -> 
     image's best under either (a stopped one counts for neither). It is then judged again in full, as before the
     stops, so that its verdict is that of full registrations; those that ran in full are recalled
     (``refinement_memo``)."""
-    best_stored = max(stored.scores.values())
     return any(f.stopped_at is None and (f.similarity >= stored.scores[polarity] + REFUSE_ORIENTATION_AT_CLICKS_GC
-                                         or (polarity != in_use and f.similarity > best_stored))
+                                         or (polarity != in_use and _ahead_of_stored(f.similarity, stored) > 0))
                for polarity, fits in turned.registered.items() for f in fits)
+
+
+def _ahead_of_stored(gc: float, stored: ClickPolarity) -> float:
+    """How far a display's GC ``gc`` is ahead of the stored image's best under either polarity (``stored``)."""
+    return float(gc - max(stored.scores.values()))
 
 
 def _leaning(again: Appearance, turned: ClickPolarity, stored: ClickPolarity, in_use: str) -> float | None:
@@ -187,8 +191,14 @@ def _leaning(again: Appearance, turned: ClickPolarity, stored: ClickPolarity, in
     the display changes. None otherwise. Seen, stop 63: report case 441's mirrored display (bone dark), unclear at
     the clicks as stored and taken bone bright (bone dark 0.387 off the clicks, bone bright 0.177 on them); on the
     mirror bone dark 0.426 against 0.011, 0.039 ahead of the stored image, under the 0.10 that takes a display."""
-    ahead = turned.scores[again.polarity] - max(stored.scores.values())
-    return float(ahead) if again.clear and again.polarity != in_use and ahead > 0 else None
+    ahead = _ahead_of_stored(turned.scores[again.polarity], stored)
+    return ahead if again.clear and again.polarity != in_use and ahead > 0 else None
+
+
+def _evidence_at_clicks(a: Appearance) -> dict:
+    """The polarity evidence at the clicks in ``a.scores`` (as stored, without the shading, on each display judged),
+    for a verdict taken instead of ``a`` to keep."""
+    return {k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))}
 
 
 def _at_clicks_key(orientation: str) -> str:
@@ -370,7 +380,7 @@ class AppearanceChecks:
         if leanings:
             ahead, again, o = max(leanings, key=lambda lean: lean[0])
             again.leaned_on_display(a, o, ahead)
-            again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))})
+            again.scores.update(_evidence_at_clicks(a))
             self._use_appearance(state, again, gc_by_storage)
 
     def _polarity_on_display(self, state: RegistrationState, gc_by_storage: dict, unshaded: ClickPolarity | None,
@@ -404,7 +414,7 @@ class AppearanceChecks:
                                      turned.fits)
         if not again.clear:
             return False, None
-        again.scores.update({k: v for k, v in a.scores.items() if k.startswith(("at_clicks", "on_"))})
+        again.scores.update(_evidence_at_clicks(a))
         self._database_verdicts(state, again, gc_by_storage)
         again.set_orientation_at_clicks(stored_against_turned(stored, turned, orientation, again.polarity,
                                                               p.identify.rule).as_dict())
