@@ -120,3 +120,13 @@ def tiny_db_inputs():
     intrinsics = CarmIntrinsics(1000.0, (4.0, 4.0), (12, 12))
     geometry = CarmGeometry(intrinsics, tuple(volume.center_lps_mm()), 600.0)
     return MuPyramid(volume).level(None), geometry, intrinsics, grid(4.0, 2.0), grid(2.0, 2.0)
+
+
+@pytest.fixture
+def click_spacing_order():
+    """The test's registrations take unnamed clicks' labellings in the order before stop 65
+    (``appearance_cases.ordered_by_click_spacing``: tests that pin what the checks do on wrong leaders)."""
+    from appearance_cases import ordered_by_click_spacing
+
+    with ordered_by_click_spacing():
+        yield

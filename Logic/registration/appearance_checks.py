@@ -74,7 +74,6 @@ from carmreg.logic.registration.click_orientation import (
     close_call,
     displayed_under_other_polarity,
     orientation_at_clicks,
-    oriented_context,
     rival_orientations,
     stored_against_turned,
 )
@@ -95,6 +94,7 @@ from carmreg.logic.registration.image_starts import image_starts
 from carmreg.logic.registration.labelling_fit import (
     FitContext,
     LabellingFit,
+    oriented_context,
     plan_labelling,
     state_context,
     unshaded_context,
@@ -654,22 +654,22 @@ class AppearanceChecks:
         """Whether the levels contest at the clicks should run again under the other polarity
         (``contest_under_other_polarity``): the polarity was left unclear at the clicks, on an image taken as stored
         whose file does not state a polarity, the user did not set it, the contest's ``winner`` was not among the
-        labellings the polarity was judged on, and it explains the image poorly (``levels.explains_the_image``:
-        under the confidence rule's floor, or its clicks beyond the cap). The polarity at the clicks is judged on
-        the labellings most plausible by click spacing; when all of them are wrong neither polarity shows an aligned
-        spine there, and the verdict can name the wrong one (seen: report case 205, chest, T10-T12 clicked, the 10th
-        most plausible of 11: taken bone bright, unclear, on three bone-dark images; the contest on the inverted
-        image then won with T1-T3 at GC 0.22-0.27, ambiguous, where under bone dark T10-T12 wins at GC 0.81). A
-        winner the polarity was judged on left it unclear itself: the image cannot tell, and a second contest only
-        costs time (seen: large patients stored bone bright, 5-25 s more a run, never taken) - unless the polarity
-        was taken from that very evidence (``REFINED_AT_CLICKS``) although at the winner the other polarity agreed
-        better with the image (``ClickPolarity.prefers_other``: the polarity was taken where the clicks fitted, on
-        other labellings). Seen, stop 46: fresh report case 271's flat-panel DICOM without a sign, stored bone
-        bright, unnamed clicks on T8-T10: judged on T3-T8, bone dark was taken (its registration kept the clicks at
-        GC 0.11, bone bright's did not, at 0.29); T6-T8 then won, GC 0.29 bone bright against -0.07 bone dark.
-        Never for a polarity a display lent (``Appearance.lent_by_display``): the other polarity is the stored
-        image's unclear verdict, which trailed clearly on a display that explained the image better (stop 64: report
-        case 441's mirrored display, the second contest 17 s more, not taken)."""
+        labellings the polarity was judged on, and it explains the image poorly (``levels.explains_the_image``: under
+        the confidence rule's floor, or its clicks beyond the cap). The polarity at the clicks is judged on the most
+        plausible labellings (``labelling_order``; by click spacing until stop 65); when all of them are wrong
+        neither polarity shows an aligned spine there, and the verdict can name the wrong one (seen: report case 205,
+        chest, T10-T12 clicked, the 10th most plausible of 11 by click spacing: taken bone bright, unclear, on three
+        bone-dark images; the contest on the inverted image then won with T1-T3 at GC 0.22-0.27, ambiguous, where
+        under bone dark T10-T12 wins at GC 0.81). A winner the polarity was judged on left it unclear itself: the
+        image cannot tell, and a second contest only costs time (seen: large patients stored bone bright, 5-25 s more
+        a run, never taken) - unless the polarity was taken from that very evidence (``REFINED_AT_CLICKS``) although
+        at the winner the other polarity agreed better with the image (``ClickPolarity.prefers_other``: the polarity
+        was taken where the clicks fitted, on other labellings). Seen, stop 46: fresh report case 271's flat-panel
+        DICOM without a sign, stored bone bright, unnamed clicks on T8-T10: judged on T3-T8, bone dark was taken (its
+        registration kept the clicks at GC 0.11, bone bright's did not, at 0.29); T6-T8 then won, GC 0.29 bone bright
+        against -0.07 bone dark. Never for a polarity a display lent (``Appearance.lent_by_display``): the other
+        polarity is the stored image's unclear verdict, which trailed clearly on a display that explained the image
+        better (stop 64: report case 441's mirrored display, the second contest 17 s more, not taken)."""
         a, cp, p = state.appearance, state.click_polarity, state.parameters
         if (a is None or cp is None or a.clear or p.polarity in POLARITIES or state.xray.polarity_stated
                 or a.orientation != "as-stored" or a.lent_by_display or explains_the_image(winner, p.identify.rule)):

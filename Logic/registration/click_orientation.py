@@ -44,21 +44,18 @@ clicks): no other decision changes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.image.appearance import (
     CLEAR_ORIENTATION_GC,
     CLOSE_ORIENTATION_AT_CLICKS_GC,
     MIN_CLICKS_GC,
     displayed_rival,
 )
-from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_intrinsics
 from carmreg.logic.registration.click_polarity import ClickPolarity
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, plan_labelling
-from carmreg.logic.registration.labellings import order_along_spine
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, fit_labelling, turned_labelling
 from carmreg.logic.registration.level_confidence import ConfidenceRule, landmark_limit_mm
 
 MIRROR = "mirrored-left-right"
@@ -85,13 +82,6 @@ def rival_orientations(database_scores: dict) -> list[str]:
     close = [o for o, g in database_scores.items() if o != "as-stored" and g > stored - CLEAR_ORIENTATION_GC]
     return sorted(set(close) | {o for o in ALWAYS_CHECKED if o in database_scores},
                   key=lambda o: -database_scores[o])
-
-
-def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
-    """The C-arm geometry of the image turned by ``turn.ORIENTATIONS[name]`` (``turn.turned_intrinsics``: its
-    size, pixel spacing and principal point turned with it, its radial distortion the same; the source and the
-    detector plane unchanged)."""
-    return geometry.with_intrinsics(turned_intrinsics(geometry.intrinsics, name))
 
 
 def orientation_at_clicks(contexts: dict, judged: list, size_px: tuple[int, int], rule: ConfidenceRule,
@@ -175,18 +165,8 @@ def stored_against_turned(stored: ClickPolarity, turned: ClickPolarity, name: st
 
 def _registered_turned(ctx: FitContext, fit: LabellingFit, name: str, size_px: tuple[int, int],
                        rule: ConfidenceRule, names_follow_clicks: bool) -> LabellingFit:
-    """``fit``'s labelling registered on orientation ``name`` of the image, its clicks turned with it."""
-    uv = orient_uv(fit.uv_px, name, size_px)
-    if not names_follow_clicks:  # the names head to sacrum on the turned image, as a labelling is made
-        uv = uv[order_along_spine(uv)]
-    return fit_labelling(ctx, plan_labelling(ctx, fit.labels, fit.shift, fit.points_lps_mm, uv),
+    """``fit``'s labelling registered on orientation ``name`` of the image, its clicks turned with it
+    (``turned_labelling``)."""
+    return fit_labelling(ctx, turned_labelling(ctx, fit, name, size_px, names_follow_clicks),
                          landmark_gate_mm=rule.max_landmark_mpde_mm)
 
-
-def oriented_context(ctx: FitContext, name: str) -> FitContext:
-    """``ctx`` on orientation ``name`` of its X-ray (``ORIENTATIONS``): the attenuation image, the field and the
-    geometry turned together."""
-    orient = ORIENTATIONS[name]
-    return replace(ctx, geometry=oriented_geometry(ctx.geometry, name),
-                   xray_line_integral=np.ascontiguousarray(orient(ctx.xray_line_integral)),
-                   mask=np.ascontiguousarray(orient(ctx.mask)))

@@ -7,7 +7,8 @@ appearance benchmark's second CT, where the database said the opposite of the tr
 variant while the DRR at the true pose correlated with the right sign (GC -0.42 bone dark, +0.49 bone bright).
 
 With clicks, the CT can be put where they say first. The leading labellings of the contest (``ContestPlan.first``,
-the most plausible first; named clicks: the names and one level up and down, so that a labelling one level off has
+the most plausible first: unnamed clicks those the image agrees with most at their landmark pose,
+``labelling_order``; named clicks: the names and one level up and down, so that a labelling one level off has
 its true neighbour judged too) are registered under both polarities p, exactly as the levels stage registers a
 labelling (``fit_labelling``: depth search, anchored landmark fit, wide image refinement with the landmark term)::
 
@@ -188,7 +189,7 @@ def judged_also(contexts: dict, evidence: ClickPolarity, planned: LabellingFit, 
                 ) -> ClickPolarity:
     """``evidence`` with one more labelling registered under every polarity exactly as the leaders were (``planned``:
     ``plan_labelling`` on these contexts): the levels contest's winner when it was not among the leaders (the
-    leaders, the most plausible by click spacing, can all be wrong ones, and then neither polarity shows an aligned
+    leaders, the most plausible, can all be wrong ones, and then neither polarity shows an aligned
     spine)."""
     registered = {polarity: list(fits) for polarity, fits in evidence.registered.items()}
     fine = landmark_fit(next(iter(contexts.values())), planned)

@@ -25,10 +25,12 @@ import numpy as np
 
 from carmreg.logic.geometry.camera import CarmGeometry
 from carmreg.logic.geometry.volume import MuLevel
+from carmreg.logic.image.turn import ORIENTATIONS, orient_uv, turned_intrinsics
 from carmreg.logic.registration.depth import DepthResult, depth_search, recenter_pose
 from carmreg.logic.registration.early_stop import rejoins
 from carmreg.logic.registration.fine import FineParameters, FineResult, fine_search
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
+from carmreg.logic.registration.labellings import order_along_spine
 from carmreg.logic.registration.refinement_memo import RefinementMemo
 
 
@@ -58,6 +60,8 @@ class FitContext:
     on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
     xray_equalised: np.ndarray | None = None  # (rows, cols) the X-ray's rank image (``agreement``; None: not used)
     refinements: RefinementMemo | None = None  # the registration's refinements run so far (None: none recalled)
+    labelling_orders: object = None         # unnamed clicks' labellings' order (``labelling_order.
+    #                                         LabellingOrders``, one per registration; None: computed each time)
 
 
 @dataclass
@@ -147,6 +151,34 @@ def plan_labelling(ctx: FitContext, labels: list, shift: int, points_lps_mm: np.
     return LabellingFit(list(labels), shift, np.asarray(points_lps_mm, float), np.asarray(uv_px, float), depth)
 
 
+def oriented_geometry(geometry: CarmGeometry, name: str) -> CarmGeometry:
+    """The C-arm geometry of the image turned by ``turn.ORIENTATIONS[name]`` (``turn.turned_intrinsics``: its
+    size, pixel spacing and principal point turned with it, its radial distortion the same; the source and the
+    detector plane unchanged)."""
+    return geometry.with_intrinsics(turned_intrinsics(geometry.intrinsics, name))
+
+
+def oriented_context(ctx: FitContext, name: str) -> FitContext:
+    """``ctx`` on orientation ``name`` of its X-ray (``ORIENTATIONS``): the attenuation image, the field and the
+    geometry turned together."""
+    orient = ORIENTATIONS[name]
+    return dataclasses.replace(ctx, geometry=oriented_geometry(ctx.geometry, name),
+                               xray_line_integral=np.ascontiguousarray(orient(ctx.xray_line_integral)),
+                               mask=np.ascontiguousarray(orient(ctx.mask)))
+
+
+def turned_labelling(ctx: FitContext, fit: LabellingFit, name: str, size_px: tuple[int, int],
+                     names_follow_clicks: bool) -> LabellingFit:
+    """``fit``'s labelling planned (``plan_labelling``) on orientation ``name`` of the image (``ctx``: an
+    ``oriented_context``; ``size_px`` = (columns, rows) of the image as stored), its clicks turned with it
+    (``turn.orient_uv``). Names the user gave stay with their clicks (they are anatomy); unnamed clicks get the
+    labelling's names head to sacrum along the turned image, as any labelling of unnamed clicks is made."""
+    uv = orient_uv(fit.uv_px, name, size_px)
+    if not names_follow_clicks:
+        uv = uv[order_along_spine(uv)]
+    return plan_labelling(ctx, fit.labels, fit.shift, fit.points_lps_mm, uv)
+
+
 def fit_labelling(ctx: FitContext, fit: LabellingFit, landmark_gate_mm: float = np.inf, give_up=None
                   ) -> LabellingFit:
     """Register ``fit`` (from ``plan_labelling``) in full: anchored fine search from its depth pose (unless
@@ -228,7 +260,8 @@ def state_context(state, line_integral: np.ndarray, ty_mm: float, tz_mm: float, 
     p = state.parameters
     return FitContext(state.pyramid.level(p.refine_coarse.mu_spacing_mm), state.geometry, line_integral,
                       state.mask, ty_mm, tz_mm, p.fine, p.refine_coarse, p.magnification_range,
-                      p.depth_far_mm, p.depth_step_mm, should_stop, on_labelling, refinements=state.refinements)
+                      p.depth_far_mm, p.depth_step_mm, should_stop, on_labelling, refinements=state.refinements,
+                      labelling_orders=state.labelling_orders)
 
 
 def unshaded_context(ctx: FitContext, without_shading_mm: float) -> FitContext:

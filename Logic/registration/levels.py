@@ -9,14 +9,14 @@ better); the verdict follows ``level_confidence``.
 The contest
 -----------
 Registering every labelling costs ~1 s each, so they are taken in order of plausibility: unnamed clicks start
-with the ``candidates`` labellings whose click spacing implies a source depth nearest the nominal C-arm's
-(intervertebral distances grow from head to sacrum, so far-off labellings need an implausible magnification);
-named clicks start with the names and their neighbours one level up and down. Then, until it holds, both
-neighbours of the best registered labelling are registered too: the winner has always beaten the look-alike
-labellings next to it. When, for unnamed clicks, the best of them still explains the image poorly (image
-agreement under the confidence rule's floor, or its clicks fitted beyond the cap), every other labelling is
-registered too: the click spacing can make the true labelling one of the least plausible (seen: a chest case
-whose true T10-T12 was the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT
+with the ``candidates`` labellings the image agrees with most at their landmark pose, on any of the displays that
+keep the detector's shape (``labelling_order``; until stop 65 those whose click spacing implies a source depth
+nearest the nominal C-arm's); named clicks start with the names and their neighbours one level up and down.
+Then, until it holds, both neighbours of the best registered labelling are registered too: the winner has always
+beaten the look-alike labellings next to it. When, for unnamed clicks, the best of them still explains the image
+poorly (image agreement under the confidence rule's floor, or its clicks fitted beyond the cap), every other
+labelling is registered too: the true labelling can be one of the least plausible (seen, ordered by click spacing:
+a chest case whose true T10-T12 was the 10th of 11, never registered, every answer ambiguous). Short refinements did NOT
 rank labellings reliably (the right one often ranked last after 160 evaluations and first after 800), but a
 refinement that trails the reference's best rival (the runner-up, or the best other than the surgeon's names) by
 more than it could still gain is stopped (``early_stop``: never the surgeon's names, the first two registrations
@@ -132,6 +132,7 @@ from carmreg.logic.registration.labelling_fit import (
     restart,
     unlabelled_fit,
 )
+from carmreg.logic.registration.labelling_order import unnamed_order
 from carmreg.logic.registration.labellings import (
     candidate_labellings,
     ct_level_names,
@@ -523,8 +524,9 @@ class ContestPlan:
 def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: IdentifyParameters | None = None
                  ) -> ContestPlan:
     """The candidate labellings (``candidate_labellings``), each with its depth search, and which to register
-    first: unnamed clicks the ``candidates`` whose source depth is nearest the nominal; named clicks the names
-    first, then one level up and down. Named clicks without a CT centroid are left out (as in pairing by name)."""
+    first: unnamed clicks the ``candidates`` the image agrees with most at their landmark pose
+    (``labelling_order.unnamed_order``); named clicks the names first, then one level up and down. Named clicks
+    without a CT centroid are left out (as in pairing by name)."""
     p = params or IdentifyParameters()
     ct_names = ct_level_names(ct)
     used = identifiable_clicks(clicks, ct_names)
@@ -535,8 +537,8 @@ def plan_contest(ctx: FitContext, ct: Landmarks3D, clicks: Landmarks2D, params: 
     labellings, given_index, mode = candidate_labellings(names, ct_names, p.max_shift)
     fits = [plan_labelling(ctx, labels, shift, np.array([ct_map[lb] for lb in labels]), uv)
             for shift, labels in labellings]
-    if given_index is None:  # the most plausible magnifications first (source depth nearest the nominal)
-        first = np.argsort([abs(f.pose[0]) for f in fits], kind="stable")[:p.candidates].tolist()
+    if given_index is None:  # those the image agrees with at their landmark pose first (``labelling_order``)
+        first = unnamed_order(ctx, fits)[:p.candidates]
     else:
         first = [i for i in (given_index, given_index - 1, given_index + 1) if 0 <= i < len(fits)]
     return ContestPlan(mode, fits, first, given_index, used, order)

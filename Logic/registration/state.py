@@ -26,6 +26,7 @@ from carmreg.logic.registration.fine import FineParameters, FineResult
 from carmreg.logic.registration.image_polarity import ImagePolarity
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult
 from carmreg.logic.registration.labelling_fit import LabellingFit, coarse_refine_parameters
+from carmreg.logic.registration.labelling_order import LabellingOrders
 from carmreg.logic.registration.level_check import LevelCheck
 from carmreg.logic.registration.levels import (
     IdentifyParameters,
@@ -110,6 +111,7 @@ class RegistrationState:
     image_polarity: ImagePolarity | None = None  # ... and without clicks, on the image alone (spatial stage)
     turned_fits: dict = field(default_factory=dict)  # the orientation check's registrations, per (polarity, storage)
     refinements: RefinementMemo = field(default_factory=RefinementMemo)  # labellings' refinements run so far
+    labelling_orders: LabellingOrders = field(default_factory=LabellingOrders)  # unnamed clicks' labellings' order
     given_pairs: Pairs | None = None        # the clicks as named by the surgeon (all named), else None
     round_field: bool = False               # the exposed field is a disc (an image intensifier's: ``field``)
     pinhole: tuple | None = None            # (geometry, pairs, the estimate's note) before the refine stage's

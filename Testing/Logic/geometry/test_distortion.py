@@ -6,7 +6,7 @@ import pytest
 from carmreg.logic.errors import GeometryError
 from carmreg.logic.geometry.camera import CarmGeometry, CarmIntrinsics
 from carmreg.logic.geometry.distortion import RadialDistortion
-from carmreg.logic.registration.click_orientation import oriented_geometry
+from carmreg.logic.registration.labelling_fit import oriented_geometry
 
 
 def test_an_image_point_100_mm_out_is_distortion_mm_outward_of_its_ideal_point():

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from appearance_cases import copied
+from appearance_cases import copied, ordered_by_click_spacing
 from PIL import Image
 from scipy import ndimage
 from simulated_cases import simulated_ap_case
@@ -445,7 +445,7 @@ def bright_png_unnamed(sample_ct, case, tmp_path_factory, drr_cache_dir):
     ``_bright_png_unnamed_after_spatial`` gives each test a copy."""
     sim, geometry = case
     bright = _bright_png(sim.pixels.astype(np.float64), geometry, tmp_path_factory.mktemp("bright") / "bright.png")
-    with pytest.MonkeyPatch.context() as patched:
+    with pytest.MonkeyPatch.context() as patched, ordered_by_click_spacing():  # its leaders as they were found
         _orientation_leads_of_stop_13(patched)
         return _after_spatial(sample_ct, bright, drr_cache_dir, Landmarks2D([None] * 3, sim.clicks.uv_px))
 
@@ -457,6 +457,7 @@ def _bright_png_unnamed_after_spatial(bright_png_unnamed, monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(bright_png_unnamed, monkeypatch):
     """The levels stage judges the appearance again with its winner (next test); a cancel in the middle (here in
     the orientation check at the clicks) leaves the appearance, the polarity evidence and the warnings as the
@@ -476,6 +477,7 @@ def test_a_cancel_while_the_appearance_is_judged_again_leaves_it_as_it_was(brigh
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_with_clicks_the_polarity_is_judged_at_their_poses_and_the_levels_stage_reuses_its_registrations(
         case, bright_png_unnamed, monkeypatch):
     """A bone-bright PNG (the reader assumes bone dark) with unnamed clicks: the leading labellings are registered

@@ -53,14 +53,12 @@ from carmreg.logic.registration.click_orientation import (
     displayed_under_other_polarity,
     fitted_limit_mm,
     orientation_at_clicks,
-    oriented_context,
-    oriented_geometry,
     rival_orientations,
     stored_against_turned,
 )
 from carmreg.logic.registration.click_polarity import ClickPolarity
 from carmreg.logic.registration.image_refine import RefineResult, penalty_bound
-from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit
+from carmreg.logic.registration.labelling_fit import FitContext, LabellingFit, oriented_context, oriented_geometry
 from carmreg.logic.registration.outcome import refused_display
 from carmreg.logic.registration.pipeline import CarmRegLogic, RegistrationParameters
 
@@ -314,6 +312,7 @@ def _appearance_found(mirrored_display, clicks: Landmarks2D):
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_mirrored_display_the_stored_image_leaves_unclear_gets_its_polarity_from_the_mirror(sample_case_dir,
                                                                                               mirrored_display):
     """The mirrored display with three unnamed clicks: where the clicks put the CT as stored, neither polarity
@@ -533,6 +532,7 @@ def test_a_display_ahead_of_the_stored_image_under_either_polarity_lends_its_cle
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_with_unnamed_clicks_an_upside_down_display_left_unclear_as_stored_gets_its_polarity_from_the_turn(
         sample_case_dir, tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's tune case 294 (chest CT): its intensifier PNG, bone dark, shown turned 180 degrees,
@@ -558,6 +558,7 @@ def test_with_unnamed_clicks_an_upside_down_display_left_unclear_as_stored_gets_
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_with_unnamed_clicks_a_mirrored_display_ahead_by_less_than_the_refusal_lends_its_polarity(
         sample_case_dir, tmp_path_factory, drr_cache_dir):
     """The appearance benchmark's report case 441 (chest CT; stop 63's one polarity miss, no threshold chosen on

@@ -67,6 +67,7 @@ def _levels_watching_the_second_contest(logic, state, cancel: bool) -> dict:
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under_the_other(clicked_case, monkeypatch):
     """Case 205's intensifier image, bone dark, log storage, 16-bit PNG, unnamed clicks: judged at the clicks on
     T4-T6 ... T8-T10 (all wrong) it is taken bone bright, unclear, when no turned display lends its polarity (since
@@ -102,6 +103,7 @@ def test_a_polarity_judged_on_wrong_labellings_is_put_right_by_the_contest_under
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_polarity_lent_by_a_display_is_confirmed_by_the_levels_winner(clicked_case):
     """The same case 205 as it runs (stop 64): unclear as stored, bone bright taken; judged on the image flipped
     up-down (unnamed clicks), bone dark leads clearly there, ahead of the stored image under either polarity but by
@@ -121,6 +123,7 @@ def test_a_polarity_lent_by_a_display_is_confirmed_by_the_levels_winner(clicked_
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_nothing_but_its_record(clicked_case):
     """Case 201's mirrored display (chest, T7-T9 clicked, unnamed): bone dark, unclear at the clicks; the contest's
     leader before its searches for confidence, T4-T6, explains the image poorly (GC 0.29), so the contest runs
@@ -149,13 +152,16 @@ def test_a_contest_under_the_other_polarity_that_does_not_confirm_it_changes_not
 
 @pytest.mark.slow
 @pytest.mark.benchmark_case
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_contest_no_winner_could_make_trusted_is_not_run_under_the_other_polarity_nor_searched(clicked_case):
     """Report case 149's large patient stored bone bright (second CT, L1-S1; L4-S1 clicked, named L3-L5, one level
     off): all four labellings of the three clicks were judged at the clicks, the polarity is unclear and the
     orientation unclear under either polarity, so no winner is judged anew (``with_winner`` returns at once) and the
     appearance can never be trusted. Since stop 59 (``AppearanceChecks.trust_within_reach``) the contest under
     the other polarity is not run (its record's ``again`` null; it took 14 s and was never taken) and the first
-    contest is not searched for confidence (10 s): ambiguous, as before, the given names kept."""
+    contest is not searched for confidence (10 s): ambiguous, as before, the given names kept. With numpy 2.4 /
+    numba 0.68 (stop 65's machine) the polarity is taken from the second opinion without the shading instead, whose
+    verdict is never contested again (``worth_other_polarity``): then no record at all, and the rest the same."""
     logic, state, truth = clicked_case(149, "fp-bright-large-tiff", names=["L3", "L4", "L5"])
     a = state.appearance
     assert (a.polarity, a.clear, a.orientation, a.orientation_clear) == ("bone-bright", False, "as-stored", False)
@@ -163,8 +169,8 @@ def test_a_contest_no_winner_could_make_trusted_is_not_run_under_the_other_polar
                                                               ("L3", "L4", "L5"), ("L4", "L5", "S1")]
     logic.run_stage(state, "levels")
     a, ident = state.appearance, state.identification
-    record = a.scores["contest_under_other_polarity"]
-    assert record["again"] is None and not record["taken"] and record["before_first_searched"]
+    record = a.scores.get("contest_under_other_polarity")
+    assert record is None or (record["again"] is None and not record["taken"] and record["before_first_searched"])
     assert ident.status == "ambiguous" and ident.checks["leaders_searched"] is False
     assert list(ident.chosen.labels) == ["L3", "L4", "L5"] and list(truth["clicked"]) == ["L4", "L5", "S1"]
     checks = AppearanceChecks(lambda *_: None, lambda: False)

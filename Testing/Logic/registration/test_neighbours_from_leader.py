@@ -45,6 +45,7 @@ def test_a_neighbour_that_missed_a_turned_view_is_refitted_from_the_leaders_pose
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_winner_found_from_its_neighbours_pose_is_judged_at_that_pose_and_confirms_the_polarity(chest_case):
     """Case 281's scene drawn on the chest CT, a flat-panel image stored bone bright as a processed 8-bit JPEG,
     unnamed clicks on T6-T8, the view turned about 10 degrees: the polarity was judged at the clicks on T2-T7 (all

@@ -25,6 +25,7 @@ def _judged(a) -> list:
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_correct_display_refused_on_wrong_leaders_is_taken_as_stored_with_their_neighbours(clicked_case):
     """The intensifier image correctly displayed, bone dark, log storage, 16-bit PNG. On the leaders alone the
     mirror led, 0.425 against 0.318: refused (stop 32, before: ambiguous, no level named). A close call, so T5-T7,
@@ -43,6 +44,7 @@ def test_a_correct_display_refused_on_wrong_leaders_is_taken_as_stored_with_thei
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_mirrored_display_clear_as_stored_on_wrong_leaders_is_refused_with_their_neighbours(clicked_case):
     """The same case's mirrored display. On the leaders alone the stored image led every rival, 0.425 against 0.359
     (turned 180 degrees) and 0.325 (mirrored): clear as stored, and only a 0.003 margin between T6-T8 and T7-T9 kept
@@ -59,6 +61,7 @@ def test_a_mirrored_display_clear_as_stored_on_wrong_leaders_is_refused_with_the
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_correct_display_judged_on_wrong_leaders_stays_trusted_with_the_winner_judged_too(clicked_case):
     """Report case 109's intensifier image, bone dark, log storage, 16-bit PNG, T7-T9 clicked: the orientation was
     judged on T5-T7 and T8-T10 (stored 0.70, the mirror 0.44). The contest's winner T7-T9 is judged too: about
@@ -76,6 +79,7 @@ def test_a_correct_display_judged_on_wrong_leaders_stays_trusted_with_the_winner
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("click_spacing_order")
 def test_a_mirrored_display_clear_as_stored_on_wrong_leaders_is_refused_once_the_right_winner_is_judged(
         clicked_case, monkeypatch):
     """Report case 99's mirrored display (T9-T11 clicked), without stop 32's close call: on its leaders T6-T8 and
