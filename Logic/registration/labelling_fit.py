@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from carmreg.logic.registration.fine import FineParameters, FineResult, fine_sea
 from carmreg.logic.registration.image_refine import RefineParameters, RefineResult, intensity_refine
 from carmreg.logic.registration.labellings import order_along_spine
 from carmreg.logic.registration.refinement_memo import RefinementMemo
+
+if TYPE_CHECKING:  # labelling_order builds on this module
+    from carmreg.logic.registration.labelling_order import LabellingOrders
 
 
 def coarse_refine_parameters() -> RefineParameters:
@@ -60,8 +64,8 @@ class FitContext:
     on_labelling: object = None             # optional progress hook, on_labelling(labels) before each fit
     xray_equalised: np.ndarray | None = None  # (rows, cols) the X-ray's rank image (``agreement``; None: not used)
     refinements: RefinementMemo | None = None  # the registration's refinements run so far (None: none recalled)
-    labelling_orders: object = None         # unnamed clicks' labellings' order (``labelling_order.
-    #                                         LabellingOrders``, one per registration; None: computed each time)
+    labelling_orders: LabellingOrders | None = None  # unnamed clicks' labellings' order, one per registration
+    #                                         (None: computed each time; ``labelling_order.unnamed_order``)
 
 
 @dataclass

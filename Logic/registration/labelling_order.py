@@ -84,11 +84,15 @@ def display_agreement(ctx: FitContext, fits: list[LabellingFit]) -> np.ndarray:
     return best
 
 
-def agreement_order(ctx: FitContext, fits: list[LabellingFit]) -> list[int]:
-    """Indices of ``fits`` by ``display_agreement`` descending, ties in ``depth_order``."""
-    agreement = display_agreement(ctx, fits)
+def ranked_by_agreement(agreement: np.ndarray, fits: list[LabellingFit]) -> list[int]:
+    """Indices of ``fits`` by their ``agreement`` (``display_agreement``) descending, ties in ``depth_order``."""
     depth_rank = {i: k for k, i in enumerate(depth_order(fits))}
     return sorted(range(len(fits)), key=lambda i: (-agreement[i], depth_rank[i]))
+
+
+def agreement_order(ctx: FitContext, fits: list[LabellingFit]) -> list[int]:
+    """Indices of ``fits`` by ``display_agreement`` descending, ties in ``depth_order``."""
+    return ranked_by_agreement(display_agreement(ctx, fits), fits)
 
 
 @dataclass

@@ -27,7 +27,11 @@ import bench_appearance as ba  # noqa: E402
 
 from carmreg.logic.image.prepare import attenuation  # noqa: E402
 from carmreg.logic.registration.labelling_fit import state_context  # noqa: E402
-from carmreg.logic.registration.labelling_order import depth_order, display_agreement  # noqa: E402
+from carmreg.logic.registration.labelling_order import (  # noqa: E402
+    depth_order,
+    display_agreement,
+    ranked_by_agreement,
+)
 from carmreg.logic.registration.levels import plan_contest  # noqa: E402
 
 NO_TRUE_LABELLING = ("flipped", "turned180", "turned90")
@@ -44,8 +48,7 @@ def ranks(maker: ba.CaseMaker, case: int, variant: str, cache_dir: str) -> dict:
     plan = plan_contest(ctx, state.ct_landmarks, state.xray_landmarks, state.parameters.identify)
     agreement = display_agreement(ctx, plan.fits)
     depth = depth_order(plan.fits)
-    depth_rank = {i: k for k, i in enumerate(depth)}
-    by_agreement = sorted(range(len(plan.fits)), key=lambda i: (-agreement[i], depth_rank[i]))
+    by_agreement = ranked_by_agreement(agreement, plan.fits)
     true = next((i for i, f in enumerate(plan.fits) if f.names(truth["clicked"])), None)
     return {"case": case, "variant": variant, "truth": list(truth["clicked"]),
             "labels": [list(f.labels) for f in plan.fits], "agreement": [float(a) for a in agreement],

@@ -1,6 +1,8 @@
 """The order unnamed clicks' labellings are registered in (``registration.labelling_order``): by the image's agreement
 at each labelling's landmark pose on any shape-keeping display, not by the source depth its click spacing implies."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from appearance_cases import appearance_case_registrar
@@ -52,8 +54,6 @@ def test_the_agreement_is_the_same_whichever_polarity_the_image_was_converted_as
     """The polarity is not known when the order is made: the image inverted (its GC is the negative) gives every
     labelling the same agreement, so the same order."""
     _, ctx, fits, _ = planned
-    import dataclasses
-
     inverted = dataclasses.replace(ctx, xray_line_integral=np.where(ctx.mask, -ctx.xray_line_integral, 0.0)
                                    .astype(np.float32))
     np.testing.assert_allclose(display_agreement(inverted, fits), display_agreement(ctx, fits), atol=1e-9)
@@ -63,8 +63,6 @@ def test_a_mirrored_display_still_leads_with_its_true_labelling(planned):
     """Shown mirrored left-right (a display setting no header records), the true labelling agrees with the image
     only mirrored: the max over displays still puts it first, so the orientation check judges it."""
     state, ctx, fits, truth = planned
-    import dataclasses
-
     mirrored = dataclasses.replace(ctx, xray_line_integral=np.ascontiguousarray(ctx.xray_line_integral[:, ::-1]),
                                    mask=np.ascontiguousarray(ctx.mask[:, ::-1]))
     cols = ctx.xray_line_integral.shape[1]
@@ -78,8 +76,6 @@ def test_one_registration_orders_each_set_of_clicks_once_whatever_context_asks(p
     """Every check of a registration (each polarity's conversion, with or without shading) takes the labellings in
     the order of the first context that asked: computed once per set of clicks, again for other clicks."""
     _, ctx, fits, _ = planned
-    import dataclasses
-
     calls = []
     real = labelling_order.agreement_order
     monkeypatch.setattr(labelling_order, "agreement_order", lambda c, f: calls.append(1) or real(c, f))
@@ -93,8 +89,10 @@ def test_one_registration_orders_each_set_of_clicks_once_whatever_context_asks(p
     assert len(calls) == 2
 
 
-appearance_cases = pytest.fixture(scope="module")(
-    lambda tmp_path_factory, drr_cache_dir: appearance_case_registrar(tmp_path_factory, drr_cache_dir, True))
+@pytest.fixture(scope="module")
+def appearance_cases(tmp_path_factory, drr_cache_dir):
+    """``registered(case, variant)`` with the case's unnamed clicks (``appearance_case_registrar``)."""
+    return appearance_case_registrar(tmp_path_factory, drr_cache_dir, with_clicks=True)
 
 
 @pytest.mark.benchmark_case
